@@ -1,0 +1,128 @@
+"""The greedy agent loop (paper, "Artificial Agent" and "Experiments").
+
+The loop runs a schedule of step-size scales (default: 20 coarse steps, then 40 fine steps). At
+each step only the current scale's actions are scored and applied. The runtime is injected as
+``score_fn(source, target) -> rewards``: ``source: (N, 3)`` is the source in its current pose,
+``target: (M, 3)`` never changes within a registration, ``rewards: (A,)`` follows the action table.
+One ``score_fn`` serves one registration, so it may cache what depends on the target or on the
+source's point set (its embedding, its kNN graph).
+
+The estimate is kept decoupled (paper, "Application of actions"): ``source_now = R @ (x - m) + c``
+with ``m`` the source centroid; rotations act on ``R`` (about the current centroid ``c``),
+translations on ``c``. The returned transforms are ``T_target_source`` in the frame of the inputs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from pranet.core.actions import DEFAULT_SCHEDULE, ActionTable
+from pranet.core.se3 import Array, make_transform
+
+ScoreFn = Callable[[Array, Array], npt.NDArray[np.floating]]
+POLICIES = ("deterministic", "stoch1", "stoch2")
+STOCH1_PROBABILITIES = np.array([0.85, 0.15, 0.05])  # paper's numbers; they sum to 1.05, so normalised
+
+
+@dataclass(frozen=True)
+class AgentStep:
+    step: int
+    action: int  # index into the action table
+    name: str
+    transform: Array  # (4, 4) T_target_source after this step
+    rewards: Array  # (A_scale,) predicted rewards of this scale's actions
+
+
+@dataclass
+class AgentResult:
+    transform: Array  # (4, 4) T_target_source
+    steps: list[AgentStep] = field(default_factory=list)
+    stopped_early: list[int] = field(default_factory=list)  # steps at which a scale was cut short
+
+
+def choose_action(rewards: Array, policy: str, rng: np.random.Generator | None) -> int:
+    """Index into ``rewards: (A_scale,)`` by ``policy`` (paper, "Stochasticity of the policy")."""
+    if policy == "deterministic":
+        return int(np.argmax(rewards))
+    if rng is None:
+        raise ValueError(f"policy {policy!r} needs an explicit rng")
+    if policy == "stoch1":
+        top = np.argsort(-rewards)[: len(STOCH1_PROBABILITIES)]
+        p = STOCH1_PROBABILITIES[: len(top)]
+        return int(rng.choice(top, p=p / p.sum()))
+    if policy == "stoch2":
+        positive = np.flatnonzero(rewards > 0)
+        return int(rng.choice(positive)) if len(positive) else int(np.argmax(rewards))
+    raise ValueError(f"unknown policy {policy!r}; choose from {POLICIES}")
+
+
+def run_agent(
+    source: npt.ArrayLike,
+    target: npt.ArrayLike,
+    score_fn: ScoreFn,
+    table: ActionTable,
+    schedule: Sequence[int] = DEFAULT_SCHEDULE,
+    policy: str = "deterministic",
+    rng: np.random.Generator | None = None,
+    early_stop: bool = False,
+    initial_transform: npt.ArrayLike | None = None,
+) -> AgentResult:
+    """Register ``source: (N, 3)`` onto ``target: (M, 3)``; returns ``T_target_source`` and the trajectory.
+
+    ``schedule[i]`` is the number of steps at scale ``i``. With ``early_stop``, a scale ends as soon
+    as no action of it has a positive predicted reward.
+    """
+    if len(schedule) != len(table.scales):
+        raise ValueError(f"schedule has {len(schedule)} phases but the action table has {len(table.scales)} scales")
+    source = np.asarray(source, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    m = source.mean(axis=0)
+    centered = source - m  # (N, 3)
+    T0 = np.eye(4) if initial_transform is None else np.asarray(initial_transform, dtype=np.float64)
+    R = T0[:3, :3].copy()
+    c = T0[:3, :3] @ m + T0[:3, 3]  # where the source centroid is now
+    result = AgentResult(transform=T0.copy())
+    step = 0
+    for scale, n_steps in enumerate(schedule):
+        idx = table.indices_of_scale(scale)
+        for _ in range(n_steps):
+            rewards = np.asarray(score_fn(centered @ R.T + c, target), dtype=np.float64)[idx]
+            if early_stop and rewards.max() <= 0.0:
+                result.stopped_early.append(step)
+                break
+            a = int(idx[choose_action(rewards, policy, rng)])
+            R = table.rotations[a] @ R  # rotation about the current centroid: c is unchanged
+            c = c + table.translations[a]
+            T = make_transform(R, c - R @ m)
+            result.steps.append(AgentStep(step, a, table.names[a], T, rewards))
+            step += 1
+    result.transform = make_transform(R, c - R @ m)
+    return result
+
+
+def oracle_score_fn(T_gt: npt.ArrayLike, source: npt.ArrayLike, table: ActionTable) -> ScoreFn:
+    """A perfect ``score_fn`` from the true ``T_gt`` (target = T_gt · source): the exact rewards.
+
+    For tests and for the upper bound of the MDP. ``source`` is the original source ``(N, 3)``.
+    """
+    from pranet.core.reward import true_rewards
+
+    T_gt = np.asarray(T_gt, dtype=np.float64)
+    source = np.asarray(source, dtype=np.float64)
+    m = source.mean(axis=0)
+    goal = T_gt[:3, :3] @ m + T_gt[:3, 3]  # where the source centroid must go
+
+    def score(current: Array, _target: Array) -> Array:
+        # Current pose from the moved points: R_now by Kabsch on centered points, c = their mean.
+        c = current.mean(axis=0)
+        H = (source - m).T @ (current - c)
+        U, _, Vt = np.linalg.svd(H)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+        R_now = Vt.T @ D @ U.T
+        return true_rewards(T_gt[:3, :3] @ R_now.T, goal - c, table)
+
+    return score

@@ -1,0 +1,65 @@
+"""Network configuration (no torch import: the service reads it from the model card)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """The reward network (paper, "Architecture").
+
+    ``edge_widths``: EdgeConv output widths. With ``project``, the concatenation of all EdgeConv
+    outputs is mapped point-wise to ``emb_dim`` (DGCNN's last layer); without it, the last EdgeConv
+    width is the embedding. ``graph``: ``"static"`` (kNN in xyz, computed once per cloud and reused)
+    or ``"dynamic"`` (kNN recomputed in feature space at each layer, as in DGCNN).
+    ``center_inputs``: embed each cloud about its own centroid and give the heads the centroid
+    offset, so the point features do not depend on translation.
+    """
+
+    n_points: int = 512
+    k: int = 16
+    edge_widths: tuple[int, ...] = (64, 64, 128)
+    project: bool = True
+    emb_dim: int = 128
+    graph: str = "static"
+    heads: int = 4
+    blocks: int = 1
+    self_attention: bool = False
+    ff_dim: int = 256
+    pool: str = "max"  # "max" | "maxmean"
+    center_inputs: bool = True
+    mlp_shared: tuple[int, ...] = (256,)
+    mlp_head: tuple[int, ...] = (128,)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> NetConfig:
+        d = dict(d)
+        for key in ("edge_widths", "mlp_shared", "mlp_head"):
+            if key in d:
+                d[key] = tuple(d[key])
+        return cls(**d)
+
+
+PAPER_NET = NetConfig(
+    n_points=1024,
+    k=20,
+    edge_widths=(64, 64, 128, 256, 1024),
+    project=False,
+    emb_dim=1024,
+    graph="dynamic",
+    heads=4,
+    blocks=1,
+    self_attention=True,
+    ff_dim=1024,
+    pool="max",
+    center_inputs=False,
+    mlp_shared=(512,),
+    mlp_head=(256,),
+)
+
+CPU_NET = NetConfig()
+

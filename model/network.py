@@ -1,0 +1,193 @@
+"""The PRANet reward network in PyTorch (paper, "Architecture", Fig. 2).
+
+DGCNN embedding (shared by source and target) -> Transformer cross-attention -> max-pool -> a shared
+MLP -> separate rotation and translation heads, which output one reward per action of the table.
+
+EdgeConv is computed in its decomposed form. The paper's edge function is
+``h(x_i, x_j) = ReLU(w·x_i + v·x_j)``; ReLU is monotone, so
+``max_j ReLU(w·x_i + v·x_j) = ReLU(w·x_i + max_j v·x_j)``: a point-wise linear map and a max over
+gathered neighbours, with no ``(B, C, N, k)`` edge tensor through a Conv2d (about k times fewer
+FLOPs). ``naive_edge_conv`` keeps the textbook form for the equivalence test.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from pranet.core.actions import ActionTable
+from pranet.model.config import NetConfig
+
+
+def gather_neighbors(x: Tensor, idx: Tensor) -> Tensor:
+    """``x: (B, N, C)``, ``idx: (B, N, k)`` -> ``(B, N, k, C)``."""
+    B, N, C = x.shape
+    k = idx.shape[-1]
+    offset = (torch.arange(B, device=x.device) * N).view(B, 1, 1)
+    flat = (idx + offset).reshape(-1)
+    return x.reshape(B * N, C)[flat].reshape(B, N, k, C)
+
+
+def feature_knn(x: Tensor, k: int) -> Tensor:
+    """kNN in feature space: ``x: (B, N, C)`` -> ``(B, N, k)`` (DGCNN's dynamic graph)."""
+    sq = (x * x).sum(-1)
+    d2 = sq.unsqueeze(2) - 2.0 * x @ x.transpose(1, 2) + sq.unsqueeze(1)
+    return (-d2).topk(k, dim=-1).indices
+
+
+class EdgeConv(nn.Module):
+    """``x_i' = ReLU(W x_i + b + max_j V x_j)`` over the neighbours ``j`` of ``i``."""
+
+    def __init__(self, c_in: int, c_out: int) -> None:
+        super().__init__()
+        self.w = nn.Linear(c_in, c_out)
+        self.v = nn.Linear(c_in, c_out, bias=False)
+
+    def forward(self, x: Tensor, idx: Tensor) -> Tensor:  # (B, N, C_in), (B, N, k)
+        neighbor_max = gather_neighbors(self.v(x), idx).amax(dim=2)  # (B, N, C_out)
+        return torch.relu(self.w(x) + neighbor_max)
+
+    def naive(self, x: Tensor, idx: Tensor) -> Tensor:
+        """Textbook form: ReLU over the full edge tensor, then max over neighbours."""
+        edges = self.w(x).unsqueeze(2) + gather_neighbors(self.v(x), idx)  # (B, N, k, C_out)
+        return torch.relu(edges).amax(dim=2)
+
+
+class DGCNN(nn.Module):
+    def __init__(self, cfg: NetConfig) -> None:
+        super().__init__()
+        widths = (3, *cfg.edge_widths)
+        self.convs = nn.ModuleList(EdgeConv(a, b) for a, b in zip(widths[:-1], widths[1:], strict=True))
+        self.dynamic = cfg.graph == "dynamic"
+        self.k = cfg.k
+        self.project = nn.Linear(sum(cfg.edge_widths), cfg.emb_dim) if cfg.project else None
+        self.out_dim = cfg.emb_dim if cfg.project else cfg.edge_widths[-1]
+
+    def forward(self, points: Tensor, knn: Tensor) -> Tensor:  # (B, N, 3), (B, N, k) -> (B, N, D)
+        x, outs = points, []
+        for i, conv in enumerate(self.convs):
+            idx = feature_knn(x, self.k) if self.dynamic and i > 0 else knn
+            x = conv(x, idx)
+            outs.append(x)
+        if self.project is None:
+            return x
+        return torch.relu(self.project(torch.cat(outs, dim=-1)))
+
+
+class Attention(nn.Module):
+    """Multi-head attention, written out so that it exports to plain ONNX ops."""
+
+    def __init__(self, dim: int, heads: int) -> None:
+        super().__init__()
+        if dim % heads:
+            raise ValueError(f"emb_dim {dim} is not divisible by heads {heads}")
+        self.heads = heads
+        self.q = nn.Linear(dim, dim)
+        self.kv = nn.Linear(dim, 2 * dim)
+        self.out = nn.Linear(dim, dim)
+
+    def forward(self, x: Tensor, y: Tensor) -> Tensor:  # queries (B, N, D), keys/values (B, M, D)
+        B, N, D = x.shape
+        h = self.heads
+        q = self.q(x).reshape(B, N, h, D // h).transpose(1, 2)  # (B, h, N, d)
+        k, v = self.kv(y).reshape(B, -1, 2, h, D // h).permute(2, 0, 3, 1, 4)  # 2 x (B, h, M, d)
+        attn = torch.softmax(q @ k.transpose(-1, -2) * (D // h) ** -0.5, dim=-1)  # (B, h, N, M)
+        return self.out((attn @ v).transpose(1, 2).reshape(B, N, D))
+
+
+class TransformerBlock(nn.Module):
+    """Pre-LayerNorm block: [self-attention], cross-attention to the other cloud, feed-forward."""
+
+    def __init__(self, dim: int, heads: int, ff_dim: int, self_attention: bool) -> None:
+        super().__init__()
+        self.self_attn = Attention(dim, heads) if self_attention else None
+        self.norm_self = nn.LayerNorm(dim) if self_attention else None
+        self.norm_q = nn.LayerNorm(dim)
+        self.norm_kv = nn.LayerNorm(dim)
+        self.cross = Attention(dim, heads)
+        self.norm_ff = nn.LayerNorm(dim)
+        self.ff = nn.Sequential(nn.Linear(dim, ff_dim), nn.ReLU(), nn.Linear(ff_dim, dim))
+
+    def forward(self, x: Tensor, y: Tensor) -> Tensor:
+        if self.self_attn is not None and self.norm_self is not None:
+            h = self.norm_self(x)
+            x = x + self.self_attn(h, h)
+        x = x + self.cross(self.norm_q(x), self.norm_kv(y))
+        return x + self.ff(self.norm_ff(x))
+
+
+def mlp(dims: tuple[int, ...]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for a, b in zip(dims[:-1], dims[1:], strict=True):
+        layers += [nn.Linear(a, b), nn.ReLU()]
+    return nn.Sequential(*layers)
+
+
+class RewardNet(nn.Module):
+    """Scores every action of ``table`` for a (source, target) pair: ``rewards: (B, A)``."""
+
+    def __init__(self, cfg: NetConfig, table: ActionTable) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.embedding = DGCNN(cfg)
+        D = self.embedding.out_dim
+        self.blocks = nn.ModuleList(TransformerBlock(D, cfg.heads, cfg.ff_dim, cfg.self_attention) for _ in range(cfg.blocks))
+        pooled = D * (2 if cfg.pool == "maxmean" else 1)
+        extra = 3 if cfg.center_inputs else 0
+        self.shared = mlp((2 * pooled + extra, *cfg.mlp_shared))
+        width = cfg.mlp_shared[-1]
+        n_rot, n_trans = len(table.rotation_indices), len(table.translation_indices)
+        self.rotation_head = nn.Sequential(mlp((width, *cfg.mlp_head)), nn.Linear(cfg.mlp_head[-1], n_rot))
+        self.translation_head = nn.Sequential(mlp((width, *cfg.mlp_head)), nn.Linear(cfg.mlp_head[-1], n_trans))
+        # Heads output [rotations..., translations...]; this permutation puts them in table order.
+        order = torch.cat([torch.as_tensor(table.rotation_indices), torch.as_tensor(table.translation_indices)])
+        self.register_buffer("table_order", torch.argsort(order), persistent=False)
+
+    def embed(self, points: Tensor, knn: Tensor) -> tuple[Tensor, Tensor]:
+        """``points: (B, N, 3)``, ``knn: (B, N, k)`` -> ``(features (B, N, D), centroid (B, 3))``."""
+        centroid = points.mean(dim=1)
+        if self.cfg.center_inputs:
+            points = points - centroid.unsqueeze(1)
+        return self.embedding(points, knn), centroid
+
+    def _pool(self, x: Tensor) -> Tensor:
+        if self.cfg.pool == "maxmean":
+            return torch.cat([x.amax(dim=1), x.mean(dim=1)], dim=-1)
+        return x.amax(dim=1)
+
+    def score(self, src: Tensor, src_centroid: Tensor, tgt: Tensor, tgt_centroid: Tensor) -> Tensor:
+        """Embeddings of both clouds -> ``rewards: (B, A)`` in action-table order."""
+        for block in self.blocks:
+            # Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X) with shared weights (paper, "Architecture").
+            src, tgt = block(src, tgt), block(tgt, src)
+        parts = [self._pool(src), self._pool(tgt)]
+        if self.cfg.center_inputs:
+            parts.append(src_centroid - tgt_centroid)
+        h = self.shared(torch.cat(parts, dim=-1))
+        out = torch.cat([self.rotation_head(h), self.translation_head(h)], dim=-1)
+        return out[:, self.table_order]
+
+    def forward(self, source: Tensor, source_knn: Tensor, target: Tensor, target_knn: Tensor) -> Tensor:
+        return self.score(*self.embed(source, source_knn), *self.embed(target, target_knn))
+
+
+class EmbedGraph(nn.Module):
+    """ONNX graph 1: ``(points, knn) -> (features, centroid)``; the service runs it once for the target."""
+
+    def __init__(self, net: RewardNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, points: Tensor, knn: Tensor) -> tuple[Tensor, Tensor]:
+        return self.net.embed(points, knn)
+
+
+class ScoreGraph(nn.Module):
+    """ONNX graph 2: ``(source, source_knn, target_features, target_centroid) -> rewards``; once per step."""
+
+    def __init__(self, net: RewardNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, points: Tensor, knn: Tensor, target_features: Tensor, target_centroid: Tensor) -> Tensor:
+        return self.net.score(*self.net.embed(points, knn), target_features, target_centroid)

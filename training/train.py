@@ -1,0 +1,262 @@
+"""``pranet-train``: supervised regression of the action rewards (paper, "Loss function").
+
+``Loss = 1/|A| ||g - h||²`` (+ weight decay in the optimiser) on i.i.d. states. Writes, under
+``--out``: ``config.json``, ``last.pt`` / ``best.pt`` (every epoch), ``log.csv``, TensorBoard
+events and ``summary.json``. ``--resume`` continues from ``last.pt``. Runs under
+``torchrun --nproc_per_node=K`` (DDP; gloo on CPU, nccl on GPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset
+
+from pranet.core.actions import ActionTable, build_action_table
+from pranet.core.knn import knn_indices
+from pranet.core.preprocess import resample
+from pranet.model.network import RewardNet
+from pranet.training.config import PRESETS, TrainConfig, parse_override
+from pranet.training.data import data_dir, load_modelnet40, split_train_val
+from pranet.training.samples import StateDistribution, curriculum_states, training_state
+
+
+class StateDataset(Dataset):
+    """Sample ``i`` of an epoch: a fresh random state of shape ``shapes[order[i]]``, seeded by (seed, epoch, i)."""
+
+    def __init__(
+        self,
+        shapes: np.ndarray,
+        cfg: TrainConfig,
+        table: ActionTable,
+        states: StateDistribution,
+        seed_key: tuple[int, ...],
+    ) -> None:
+        self.shapes = shapes
+        self.cfg = cfg
+        self.table = table
+        self.states = states
+        self.seed_key = seed_key
+        names, weights = zip(*cfg.sampling.settings, strict=True)
+        self.setting_names = names
+        self.setting_p = np.array(weights, dtype=np.float64) / sum(weights)
+
+    def __len__(self) -> int:
+        return len(self.shapes)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, ...]:
+        rng = np.random.default_rng([*self.seed_key, i])
+        setting = self.setting_names[int(rng.choice(len(self.setting_names), p=self.setting_p))]
+        src, tgt, rewards = training_state(self.shapes[i], setting, self.states, self.table, rng, self.cfg.sampling.reward)
+        n, k = self.cfg.net.n_points, self.cfg.net.k
+        src, tgt = resample(src, n, rng).astype(np.float32), resample(tgt, n, rng).astype(np.float32)
+        return (
+            torch.from_numpy(src),
+            torch.from_numpy(knn_indices(src, k)),
+            torch.from_numpy(tgt),
+            torch.from_numpy(knn_indices(tgt, k)),
+            torch.from_numpy(rewards.astype(np.float32)),
+        )
+
+
+def build_optimizer(net: torch.nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
+    o = cfg.optim
+    if o.optimizer == "sgd":
+        opt: torch.optim.Optimizer = torch.optim.SGD(net.parameters(), lr=o.lr, momentum=o.momentum, weight_decay=o.weight_decay)
+    elif o.optimizer == "adamw":
+        opt = torch.optim.AdamW(net.parameters(), lr=o.lr, weight_decay=o.weight_decay)
+    else:
+        raise ValueError(f"unknown optimizer {o.optimizer!r}")
+    if o.schedule == "step":
+        sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.MultiStepLR(opt, list(o.milestones), o.gamma)
+    elif o.schedule == "cosine":
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=o.epochs, eta_min=o.lr * 0.01)
+    else:
+        raise ValueError(f"unknown schedule {o.schedule!r}")
+    return opt, sched
+
+
+def resolve_config(args: argparse.Namespace) -> TrainConfig:
+    cfg = PRESETS[args.preset]
+    for item in args.set or []:
+        cfg = parse_override(cfg, item)
+    if args.epochs is not None:
+        cfg = replace(cfg, optim=replace(cfg.optim, epochs=args.epochs))
+    return cfg
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="pranet-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. optim.lr=0.01 (JSON values)")
+    p.add_argument("--epochs", type=int, help="shortcut for --set optim.epochs=N")
+    p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
+    p.add_argument("--out", type=Path, help="run directory (default runs/<preset>)")
+    p.add_argument("--resume", action="store_true", help="continue from <out>/last.pt")
+    p.add_argument("--limit", type=int, help="use only this many training shapes and validation samples (smoke runs)")
+    p.add_argument("--data-dir", help="data root (default $PRANET_DATA_DIR or ../shared/data)")
+    p.add_argument("--workers", type=int, default=1, help="data-loader worker processes")
+    p.add_argument("--no-progress", action="store_true")
+    return p.parse_args(argv)
+
+
+def setup_distributed() -> tuple[int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world > 1:
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+        return dist.get_rank(), world
+    return 0, 1
+
+
+def validation_set(shapes: np.ndarray, cfg: TrainConfig, table: ActionTable) -> list[tuple[torch.Tensor, ...]]:
+    """Fixed validation states from the full (post-curriculum) distribution."""
+    states = StateDistribution(cfg.sampling.full, cfg.sampling.rotation, cfg.sampling.orientation_max_deg)
+    ds = StateDataset(shapes, cfg, table, states, (cfg.seed, 10**6))
+    return [ds[i] for i in range(len(ds))]
+
+
+def evaluate_loss(net: torch.nn.Module, batches: list[tuple[torch.Tensor, ...]], batch_size: int) -> float:
+    net.eval()
+    total, count = 0.0, 0
+    with torch.no_grad():
+        for i in range(0, len(batches), batch_size):
+            s, sk, t, tk, g = (torch.stack(x) for x in zip(*batches[i : i + batch_size], strict=True))
+            total += float(((net(s, sk, t, tk) - g) ** 2).mean(dim=1).sum())
+            count += len(g)
+    net.train()
+    return total / max(count, 1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    cfg = resolve_config(args)
+    if args.print_config:
+        print(cfg.to_json())
+        return 0
+    rank, world = setup_distributed()
+    if cfg.threads:
+        torch.set_num_threads(max(1, cfg.threads // world))
+    out = args.out or Path("runs") / cfg.preset
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    table = build_action_table(cfg.scales)
+
+    root = data_dir(args.data_dir)
+    data = load_modelnet40(root, "train")
+    splits = split_train_val(data.labels, cfg.split_seed, cfg.val_fraction)
+    train_shapes = data.points[splits.train]
+    val_shapes = data.points[splits.val][: cfg.val_samples]
+    if args.limit:
+        train_shapes, val_shapes = train_shapes[: args.limit], val_shapes[: args.limit]
+
+    net = RewardNet(cfg.net, table)
+    model: torch.nn.Module = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
+    opt, sched = build_optimizer(net, cfg)
+    start_epoch, best, wall = 0, float("inf"), 0.0
+    if args.resume and (out / "last.pt").exists():
+        ck = torch.load(out / "last.pt", map_location="cpu", weights_only=False)
+        if ck["config"] != cfg.to_dict():
+            sys.exit(f"--resume: {out}/last.pt was trained with a different config; use another --out")
+        net.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        start_epoch, best, wall = ck["epoch"] + 1, ck["best_val"], ck["wall_s"]
+        if rank == 0:
+            print(f"resumed from epoch {ck['epoch']} (val {ck['val_loss']:.5f}, {wall / 60:.1f} min so far)")
+    elif (out / "last.pt").exists() and rank == 0:
+        print(f"note: {out}/last.pt exists; starting afresh (use --resume to continue)")
+
+    data_hash = splits.fingerprint(data.files)
+    if rank == 0:
+        (out / "config.json").write_text(cfg.to_json())
+        (out / "split.json").write_text(
+            json.dumps({"seed": splits.seed, "train": splits.train.tolist(), "val": splits.val.tolist(), "data_sha256": data_hash})
+        )
+    val = validation_set(val_shapes, cfg, table) if rank == 0 else []
+    writer = None
+    if rank == 0:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(out / "tb"))
+    log_path = out / "log.csv"
+    if rank == 0 and not log_path.exists():
+        log_path.write_text("epoch,train_loss,val_loss,lr,samples,epoch_s,wall_s\n")
+
+    s = cfg.sampling
+    for epoch in range(start_epoch, cfg.optim.epochs):
+        t0 = time.time()
+        comps = curriculum_states(epoch, cfg.optim.epochs, s.curriculum, s.full, s.small, s.curriculum_fraction)
+        states = StateDistribution(comps, s.rotation, s.orientation_max_deg)
+        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_shapes))
+        mine = order[rank::world]
+        ds = StateDataset(train_shapes[mine], cfg, table, states, (cfg.seed, epoch, rank))
+        loader = DataLoader(
+            ds, batch_size=cfg.optim.batch_size, shuffle=False, num_workers=args.workers, drop_last=True,
+            persistent_workers=False,
+        )
+        it = loader
+        if rank == 0 and not args.no_progress:
+            from tqdm import tqdm
+
+            it = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.optim.epochs}", leave=False, file=sys.stdout)
+        running, n = 0.0, 0
+        for src, src_knn, tgt, tgt_knn, g in it:
+            loss = ((model(src, src_knn, tgt, tgt_knn) - g) ** 2).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if cfg.optim.grad_clip:
+                torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.optim.grad_clip)
+            opt.step()
+            running += float(loss.detach()) * len(g)
+            n += len(g)
+            if rank == 0 and not args.no_progress and hasattr(it, "set_postfix"):
+                it.set_postfix(loss=f"{running / n:.4f}")
+        lr = opt.param_groups[0]["lr"]
+        sched.step()
+        if rank != 0:
+            continue
+        val_loss = evaluate_loss(net, val, cfg.optim.batch_size)
+        epoch_s = time.time() - t0
+        wall += epoch_s
+        train_loss = running / max(n, 1)
+        best = min(best, val_loss)
+        ck = {
+            "epoch": epoch, "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+            "config": cfg.to_dict(), "val_loss": val_loss, "best_val": best, "wall_s": wall,
+            "samples": n * world, "data_sha256": data_hash, "action_fingerprint": table.fingerprint,
+        }
+        torch.save(ck, out / "last.pt.tmp")
+        os.replace(out / "last.pt.tmp", out / "last.pt")
+        if val_loss <= best:
+            torch.save(ck, out / "best.pt")
+        with open(log_path, "a", newline="") as f:
+            csv.writer(f).writerow([epoch, f"{train_loss:.6f}", f"{val_loss:.6f}", f"{lr:.6g}", n * world, f"{epoch_s:.1f}", f"{wall:.1f}"])
+        if writer is not None:
+            writer.add_scalar("loss/train", train_loss, epoch)
+            writer.add_scalar("loss/val", val_loss, epoch)
+            writer.add_scalar("lr", lr, epoch)
+            writer.flush()
+        print(f"epoch {epoch + 1}/{cfg.optim.epochs} train {train_loss:.5f} val {val_loss:.5f} lr {lr:.3g} {epoch_s:.0f}s", flush=True)
+    if rank == 0:
+        summary = {
+            "preset": cfg.preset, "epochs": cfg.optim.epochs, "wall_s": wall, "best_val_loss": best,
+            "data_sha256": data_hash, "action_fingerprint": table.fingerprint, "world_size": world,
+        }
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    if world > 1:
+        dist.destroy_process_group()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
