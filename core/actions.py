@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-
 from pranet.core.se3 import Array, axis_rotation
 
 AXES = "xyz"
@@ -52,10 +51,16 @@ class ActionTable:
         for s, (deg, dist) in enumerate(self.scales):
             for axis in range(3):
                 for sign in (1, -1):
-                    out.append(Action("rotation", axis, sign, np.deg2rad(deg), s, f"rot{'+-'[sign < 0]}{AXES[axis]}:{deg:g}deg"))
+                    out.append(
+                        Action(
+                            "rotation", axis, sign, np.deg2rad(deg), s, f"rot{'+-'[sign < 0]}{AXES[axis]}:{deg:g}deg"
+                        )
+                    )
             for axis in range(3):
                 for sign in (1, -1):
-                    out.append(Action("translation", axis, sign, dist, s, f"trans{'+-'[sign < 0]}{AXES[axis]}:{dist:g}"))
+                    out.append(
+                        Action("translation", axis, sign, dist, s, f"trans{'+-'[sign < 0]}{AXES[axis]}:{dist:g}")
+                    )
         return tuple(out)
 
     def __len__(self) -> int:

@@ -14,18 +14,22 @@ translations on ``c``. The returned transforms are ``T_target_source`` in the fr
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
-
 from pranet.core.actions import DEFAULT_SCHEDULE, ActionTable
 from pranet.core.se3 import Array, make_transform
 
 ScoreFn = Callable[[Array, Array], npt.NDArray[np.floating]]
 POLICIES = ("deterministic", "stoch1", "stoch2")
 STOCH1_PROBABILITIES = np.array([0.85, 0.15, 0.05])  # paper's numbers; they sum to 1.05, so normalised
+
+
+class AgentTimeout(TimeoutError):
+    """The agent loop ran past its deadline."""
 
 
 @dataclass(frozen=True)
@@ -70,11 +74,13 @@ def run_agent(
     rng: np.random.Generator | None = None,
     early_stop: bool = False,
     initial_transform: npt.ArrayLike | None = None,
+    deadline: float | None = None,
 ) -> AgentResult:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)``; returns ``T_target_source`` and the trajectory.
 
     ``schedule[i]`` is the number of steps at scale ``i``. With ``early_stop``, a scale ends as soon
-    as no action of it has a positive predicted reward.
+    as no action of it has a positive predicted reward. ``deadline`` (``time.monotonic()`` seconds):
+    raise ``AgentTimeout`` once it has passed, checked before every step.
     """
     if len(schedule) != len(table.scales):
         raise ValueError(f"schedule has {len(schedule)} phases but the action table has {len(table.scales)} scales")
@@ -90,6 +96,8 @@ def run_agent(
     for scale, n_steps in enumerate(schedule):
         idx = table.indices_of_scale(scale)
         for _ in range(n_steps):
+            if deadline is not None and time.monotonic() > deadline:
+                raise AgentTimeout(f"registration exceeded its time limit after {step} steps")
             rewards = np.asarray(score_fn(centered @ R.T + c, target), dtype=np.float64)[idx]
             if early_stop and rewards.max() <= 0.0:
                 result.stopped_early.append(step)

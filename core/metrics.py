@@ -9,7 +9,6 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import numpy.typing as npt
-
 from pranet.core.se3 import Array, apply_transform, inverse, rotation_angle
 
 SUCCESS_ROTATION_DEG = 1.0
@@ -24,7 +23,9 @@ def isotropic_errors(T_est: npt.ArrayLike, T_gt: npt.ArrayLike) -> tuple[float, 
 
 def clean_l2(clean_source: npt.ArrayLike, T_est: npt.ArrayLike, T_gt: npt.ArrayLike) -> float:
     """Mean distance between the clean complete source ``(N, 3)`` under ``T_est`` and under ``T_gt``."""
-    return float(np.linalg.norm(apply_transform(T_est, clean_source) - apply_transform(T_gt, clean_source), axis=1).mean())
+    return float(
+        np.linalg.norm(apply_transform(T_est, clean_source) - apply_transform(T_gt, clean_source), axis=1).mean()
+    )
 
 
 def _nn_sq_dist(a: Array, b: Array, chunk: int = 2048) -> Array:
@@ -54,7 +55,9 @@ def modified_chamfer(
     src_est = apply_transform(T_est, source)
     clean_target = apply_transform(T_gt, clean_source)
     clean_est = apply_transform(T_est, clean_source)
-    return float(_nn_sq_dist(src_est, clean_target).mean() + _nn_sq_dist(np.asarray(target, dtype=np.float64), clean_est).mean())
+    return float(
+        _nn_sq_dist(src_est, clean_target).mean() + _nn_sq_dist(np.asarray(target, dtype=np.float64), clean_est).mean()
+    )
 
 
 def chamfer(a: npt.ArrayLike, b: npt.ArrayLike) -> float:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
-
 from pranet.core.actions import ActionTable
 from pranet.core.se3 import Array, rotation_angle
 
@@ -47,9 +46,7 @@ def true_rewards(R_err: npt.ArrayLike, t_err: npt.ArrayLike, table: ActionTable,
     # Rotation actions: R_err @ R_a.T; translation actions: t_err - t_a (decoupled, paper Sec. "Reward function").
     rot_after = rotation_angle(np.einsum("bij,akj->baik", R_err, table.rotations))  # (B, A)
     trans_after = np.linalg.norm(t_err[:, None, :] - table.translations[None], axis=-1)  # (B, A)
-    rewards = np.where(
-        table.is_rotation[None], rot_before[:, None] - rot_after, trans_before[:, None] - trans_after
-    )
+    rewards = np.where(table.is_rotation[None], rot_before[:, None] - rot_after, trans_before[:, None] - trans_after)
     if normalize:
         rewards = normalize_per_scale(rewards, table)
     return rewards if batched else rewards[0]

@@ -62,4 +62,3 @@ PAPER_NET = NetConfig(
 )
 
 CPU_NET = NetConfig()
-

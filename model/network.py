@@ -13,10 +13,9 @@ FLOPs). ``naive_edge_conv`` keeps the textbook form for the equivalence test.
 from __future__ import annotations
 
 import torch
-from torch import Tensor, nn
-
 from pranet.core.actions import ActionTable
 from pranet.model.config import NetConfig
+from torch import Tensor, nn
 
 
 def gather_neighbors(x: Tensor, idx: Tensor) -> Tensor:
@@ -90,7 +89,8 @@ class Attention(nn.Module):
         B, N, D = x.shape
         h = self.heads
         q = self.q(x).reshape(B, N, h, D // h).transpose(1, 2)  # (B, h, N, d)
-        k, v = self.kv(y).reshape(B, -1, 2, h, D // h).permute(2, 0, 3, 1, 4)  # 2 x (B, h, M, d)
+        kv = self.kv(y).reshape(B, -1, 2, h, D // h).permute(2, 0, 3, 1, 4)  # (2, B, h, M, d)
+        k, v = kv[0], kv[1]
         attn = torch.softmax(q @ k.transpose(-1, -2) * (D // h) ** -0.5, dim=-1)  # (B, h, N, M)
         return self.out((attn @ v).transpose(1, 2).reshape(B, N, D))
 
@@ -131,7 +131,9 @@ class RewardNet(nn.Module):
         self.cfg = cfg
         self.embedding = DGCNN(cfg)
         D = self.embedding.out_dim
-        self.blocks = nn.ModuleList(TransformerBlock(D, cfg.heads, cfg.ff_dim, cfg.self_attention) for _ in range(cfg.blocks))
+        self.blocks = nn.ModuleList(
+            TransformerBlock(D, cfg.heads, cfg.ff_dim, cfg.self_attention) for _ in range(cfg.blocks)
+        )
         pooled = D * (2 if cfg.pool == "maxmean" else 1)
         extra = 3 if cfg.center_inputs else 0
         self.shared = mlp((2 * pooled + extra, *cfg.mlp_shared))

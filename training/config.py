@@ -93,7 +93,9 @@ PRESETS: dict[str, TrainConfig] = {
             full=((60.0, 0.5, 0.5), (10.0, 0.1, 0.25), (2.0, 0.02, 0.25)),
             orientation_max_deg=60.0,
         ),
-        optim=OptimConfig(optimizer="adamw", lr=1e-3, weight_decay=1e-4, schedule="cosine", batch_size=16, epochs=32, grad_clip=1.0),
+        optim=OptimConfig(
+            optimizer="adamw", lr=1e-3, weight_decay=1e-4, schedule="cosine", batch_size=16, epochs=32, grad_clip=1.0
+        ),
         threads=2,
     ),
 }

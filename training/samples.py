@@ -16,7 +16,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
 from pranet.core.actions import ActionTable
 from pranet.core.reward import point_rewards, true_rewards
 from pranet.core.sampling import sample_rotations, sample_translations, sample_unit_vectors
@@ -75,7 +74,8 @@ def make_pair(
 ) -> Pair:
     src, tgt = observe(shape, setting, rng)
     T_gt = make_transform(
-        sample_rotations(rng, rotation, np.deg2rad(max_angle_deg), 1)[0], sample_translations(rng, max_translation, 1)[0]
+        sample_rotations(rng, rotation, np.deg2rad(max_angle_deg), 1)[0],
+        sample_translations(rng, max_translation, 1)[0],
     )
     return Pair(source=src, target=apply_transform(T_gt, tgt), clean_source=np.asarray(shape, np.float64), T_gt=T_gt)
 

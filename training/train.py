@@ -20,8 +20,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as dist
-from torch.utils.data import DataLoader, Dataset
-
 from pranet.core.actions import ActionTable, build_action_table
 from pranet.core.knn import knn_indices
 from pranet.core.preprocess import resample
@@ -29,6 +27,7 @@ from pranet.model.network import RewardNet
 from pranet.training.config import PRESETS, TrainConfig, parse_override
 from pranet.training.data import data_dir, load_modelnet40, split_train_val
 from pranet.training.samples import StateDistribution, curriculum_states, training_state
+from torch.utils.data import DataLoader, Dataset
 
 
 class StateDataset(Dataset):
@@ -57,7 +56,9 @@ class StateDataset(Dataset):
     def __getitem__(self, i: int) -> tuple[torch.Tensor, ...]:
         rng = np.random.default_rng([*self.seed_key, i])
         setting = self.setting_names[int(rng.choice(len(self.setting_names), p=self.setting_p))]
-        src, tgt, rewards = training_state(self.shapes[i], setting, self.states, self.table, rng, self.cfg.sampling.reward)
+        src, tgt, rewards = training_state(
+            self.shapes[i], setting, self.states, self.table, rng, self.cfg.sampling.reward
+        )
         n, k = self.cfg.net.n_points, self.cfg.net.k
         src, tgt = resample(src, n, rng).astype(np.float32), resample(tgt, n, rng).astype(np.float32)
         return (
@@ -69,16 +70,22 @@ class StateDataset(Dataset):
         )
 
 
-def build_optimizer(net: torch.nn.Module, cfg: TrainConfig) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
+def build_optimizer(
+    net: torch.nn.Module, cfg: TrainConfig
+) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
     o = cfg.optim
     if o.optimizer == "sgd":
-        opt: torch.optim.Optimizer = torch.optim.SGD(net.parameters(), lr=o.lr, momentum=o.momentum, weight_decay=o.weight_decay)
+        opt: torch.optim.Optimizer = torch.optim.SGD(
+            net.parameters(), lr=o.lr, momentum=o.momentum, weight_decay=o.weight_decay
+        )
     elif o.optimizer == "adamw":
         opt = torch.optim.AdamW(net.parameters(), lr=o.lr, weight_decay=o.weight_decay)
     else:
         raise ValueError(f"unknown optimizer {o.optimizer!r}")
     if o.schedule == "step":
-        sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.MultiStepLR(opt, list(o.milestones), o.gamma)
+        sched: torch.optim.lr_scheduler.LRScheduler = torch.optim.lr_scheduler.MultiStepLR(
+            opt, list(o.milestones), o.gamma
+        )
     elif o.schedule == "cosine":
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=o.epochs, eta_min=o.lr * 0.01)
     else:
@@ -96,7 +103,9 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="pranet-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="pranet-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--preset", choices=sorted(PRESETS), default="cpu")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override, e.g. optim.lr=0.01 (JSON values)")
     p.add_argument("--epochs", type=int, help="shortcut for --set optim.epochs=N")
@@ -180,7 +189,14 @@ def main(argv: list[str] | None = None) -> int:
     if rank == 0:
         (out / "config.json").write_text(cfg.to_json())
         (out / "split.json").write_text(
-            json.dumps({"seed": splits.seed, "train": splits.train.tolist(), "val": splits.val.tolist(), "data_sha256": data_hash})
+            json.dumps(
+                {
+                    "seed": splits.seed,
+                    "train": splits.train.tolist(),
+                    "val": splits.val.tolist(),
+                    "data_sha256": data_hash,
+                }
+            )
         )
     val = validation_set(val_shapes, cfg, table) if rank == 0 else []
     writer = None
@@ -201,7 +217,11 @@ def main(argv: list[str] | None = None) -> int:
         mine = order[rank::world]
         ds = StateDataset(train_shapes[mine], cfg, table, states, (cfg.seed, epoch, rank))
         loader = DataLoader(
-            ds, batch_size=cfg.optim.batch_size, shuffle=False, num_workers=args.workers, drop_last=True,
+            ds,
+            batch_size=cfg.optim.batch_size,
+            shuffle=False,
+            num_workers=args.workers,
+            drop_last=True,
             persistent_workers=False,
         )
         it = loader
@@ -231,26 +251,44 @@ def main(argv: list[str] | None = None) -> int:
         train_loss = running / max(n, 1)
         best = min(best, val_loss)
         ck = {
-            "epoch": epoch, "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-            "config": cfg.to_dict(), "val_loss": val_loss, "best_val": best, "wall_s": wall,
-            "samples": n * world, "data_sha256": data_hash, "action_fingerprint": table.fingerprint,
+            "epoch": epoch,
+            "model": net.state_dict(),
+            "optimizer": opt.state_dict(),
+            "scheduler": sched.state_dict(),
+            "config": cfg.to_dict(),
+            "val_loss": val_loss,
+            "best_val": best,
+            "wall_s": wall,
+            "samples": n * world,
+            "data_sha256": data_hash,
+            "action_fingerprint": table.fingerprint,
         }
         torch.save(ck, out / "last.pt.tmp")
         os.replace(out / "last.pt.tmp", out / "last.pt")
         if val_loss <= best:
             torch.save(ck, out / "best.pt")
         with open(log_path, "a", newline="") as f:
-            csv.writer(f).writerow([epoch, f"{train_loss:.6f}", f"{val_loss:.6f}", f"{lr:.6g}", n * world, f"{epoch_s:.1f}", f"{wall:.1f}"])
+            csv.writer(f).writerow(
+                [epoch, f"{train_loss:.6f}", f"{val_loss:.6f}", f"{lr:.6g}", n * world, f"{epoch_s:.1f}", f"{wall:.1f}"]
+            )
         if writer is not None:
             writer.add_scalar("loss/train", train_loss, epoch)
             writer.add_scalar("loss/val", val_loss, epoch)
             writer.add_scalar("lr", lr, epoch)
             writer.flush()
-        print(f"epoch {epoch + 1}/{cfg.optim.epochs} train {train_loss:.5f} val {val_loss:.5f} lr {lr:.3g} {epoch_s:.0f}s", flush=True)
+        print(
+            f"epoch {epoch + 1}/{cfg.optim.epochs} train {train_loss:.5f} val {val_loss:.5f} lr {lr:.3g} {epoch_s:.0f}s",
+            flush=True,
+        )
     if rank == 0:
         summary = {
-            "preset": cfg.preset, "epochs": cfg.optim.epochs, "wall_s": wall, "best_val_loss": best,
-            "data_sha256": data_hash, "action_fingerprint": table.fingerprint, "world_size": world,
+            "preset": cfg.preset,
+            "epochs": cfg.optim.epochs,
+            "wall_s": wall,
+            "best_val_loss": best,
+            "data_sha256": data_hash,
+            "action_fingerprint": table.fingerprint,
+            "world_size": world,
         }
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
     if world > 1:

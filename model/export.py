@@ -1,0 +1,142 @@
+"""``pranet-export``: a training checkpoint -> the ONNX model directory the service loads.
+
+The directory holds two graphs, so that the target embedding stays separable and is computed once
+per registration:
+
+- ``embed.onnx``: ``points (B, N, 3) float32, knn (B, N, k) int64 -> features (B, N, D), centroid (B, 3)``
+- ``score.onnx``: ``points, knn, target_features (B, M, D), target_centroid (B, 3) -> rewards (B, A)``
+
+and ``card.json``: preset, N, k, the action table (scales, names, fingerprint), the schedule, the
+network config, the training summary and the sha256 of both graphs (checked at load). The same
+metadata is stored in each graph's ``metadata_props``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from pranet.core.actions import build_action_table
+from pranet.model.config import NetConfig
+from pranet.model.network import EmbedGraph, RewardNet, ScoreGraph
+
+OPSET = 17
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def load_checkpoint(path: Path) -> tuple[RewardNet, dict[str, Any]]:
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    cfg = ck["config"]
+    table = build_action_table(cfg["scales"])
+    net = RewardNet(NetConfig.from_dict(cfg["net"]), table)
+    net.load_state_dict(ck["model"])
+    net.eval()
+    return net, ck
+
+
+def _set_metadata(path: Path, meta: dict[str, str]) -> None:
+    import onnx
+
+    m = onnx.load(str(path))
+    del m.metadata_props[:]
+    for k, v in meta.items():
+        m.metadata_props.add(key=k, value=v)
+    onnx.save(m, str(path))
+
+
+def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, Any]:
+    """Write ``embed.onnx``, ``score.onnx`` and ``card.json`` into ``out``; returns the card."""
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = net.cfg
+    N, k = cfg.n_points, cfg.k
+    pts = torch.randn(1, N, 3)
+    knn = torch.randint(0, N, (1, N, k), dtype=torch.int64)
+    with torch.no_grad():
+        feats, cen = net.embed(pts, knn)
+    axes = {"points": {0: "batch", 1: "n"}, "knn": {0: "batch", 1: "n"}}
+    torch.onnx.export(
+        EmbedGraph(net),
+        (pts, knn),
+        str(out / "embed.onnx"),
+        input_names=["points", "knn"],
+        output_names=["features", "centroid"],
+        dynamic_axes={**axes, "features": {0: "batch", 1: "n"}, "centroid": {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
+    torch.onnx.export(
+        ScoreGraph(net),
+        (pts, knn, feats, cen),
+        str(out / "score.onnx"),
+        input_names=["points", "knn", "target_features", "target_centroid"],
+        output_names=["rewards"],
+        dynamic_axes={
+            **axes,
+            "target_features": {0: "batch", 1: "m"},
+            "target_centroid": {0: "batch"},
+            "rewards": {0: "batch"},
+        },
+        opset_version=OPSET,
+        dynamo=False,
+    )
+    meta = {k: json.dumps(v) for k, v in card.items() if k != "files"}
+    for name in ("embed.onnx", "score.onnx"):
+        _set_metadata(out / name, meta)
+    card = {**card, "files": {name: sha256_file(out / name) for name in ("embed.onnx", "score.onnx")}}
+    (out / "card.json").write_text(json.dumps(card, indent=2) + "\n")
+    return card
+
+
+def card_from_checkpoint(ck: dict[str, Any], name: str, version: str) -> dict[str, Any]:
+    cfg = ck["config"]
+    table = build_action_table(cfg["scales"])
+    return {
+        "name": name,
+        "version": version,
+        "preset": cfg["preset"],
+        "n_points": cfg["net"]["n_points"],
+        "k": cfg["net"]["k"],
+        "actions": {
+            "scales": [list(s) for s in table.scales],
+            "names": list(table.names),
+            "fingerprint": table.fingerprint,
+        },
+        "schedule": list(cfg["schedule"]),
+        "net": cfg["net"],
+        "training": {
+            "epochs_completed": ck["epoch"] + 1,
+            "epochs_planned": cfg["optim"]["epochs"],
+            "wall_s": round(ck["wall_s"], 1),
+            "val_loss": ck["val_loss"],
+            "best_val_loss": ck["best_val"],
+            "data_sha256": ck.get("data_sha256"),
+            "seed": cfg["seed"],
+        },
+        "config": cfg,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="pranet-export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("checkpoint", type=Path, help="a .pt file written by pranet-train")
+    p.add_argument("--out", type=Path, required=True, help="model directory to write")
+    p.add_argument("--name", default="pranet-cpu")
+    p.add_argument("--version", default="0.1.0")
+    args = p.parse_args(argv)
+    net, ck = load_checkpoint(args.checkpoint)
+    card = export_model(net, args.out, card_from_checkpoint(ck, args.name, args.version))
+    print(json.dumps({"out": str(args.out), "files": card["files"], "training": card["training"]}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,47 @@
+"""ICP refinement with Open3D (PRANet-v2), in the model's unit frame."""
+
+from __future__ import annotations
+
+import numpy as np
+from pranet.core.pipeline import IcpResult
+from pranet.core.se3 import Array
+
+DEFAULT_MAX_DISTANCE = 0.05  # unit frame (clouds scaled to the unit sphere)
+DEFAULT_VOXEL = 0.01  # downsample larger clouds before ICP
+MAX_POINTS_BEFORE_VOXEL = 20000
+
+
+def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud()
+    pc.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
+    return pc
+
+
+def make_icp(
+    max_distance: float = DEFAULT_MAX_DISTANCE, max_iterations: int = 50, method: str = "point_to_point"
+):  # -> IcpFn
+    """An ``IcpFn`` running Open3D's ICP from the agent's estimate."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    estimation = (
+        reg.TransformationEstimationPointToPlane()
+        if method == "point_to_plane"
+        else reg.TransformationEstimationPointToPoint()
+    )
+    criteria = reg.ICPConvergenceCriteria(max_iteration=max_iterations)
+
+    def icp(source: Array, target: Array, init: Array) -> IcpResult:
+        src, tgt = to_o3d(source), to_o3d(target)
+        if len(source) > MAX_POINTS_BEFORE_VOXEL:
+            src = src.voxel_down_sample(DEFAULT_VOXEL)
+        if len(target) > MAX_POINTS_BEFORE_VOXEL:
+            tgt = tgt.voxel_down_sample(DEFAULT_VOXEL)
+        if method == "point_to_plane":
+            tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * max_distance, max_nn=30))
+        r = reg.registration_icp(src, tgt, max_distance, np.asarray(init, dtype=np.float64), estimation, criteria)
+        return IcpResult(np.asarray(r.transformation).copy(), float(r.fitness), float(r.inlier_rmse))
+
+    return icp
