@@ -57,11 +57,10 @@ def _captured_native_stderr(messages: list[str]) -> Iterator[None]:
     RPly prints its errors straight to the C ``stderr``; capturing them keeps a CLI's error to one line
     and lets the reader turn them into an exception. Not thread-safe with other writers to fd 2.
     """
-    try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):  # stderr replaced (e.g. captured by a test runner)
-        fd = 2
-    sys.stderr.flush()
+    fd = 2  # the C library's stderr, whatever Python's sys.stderr was replaced with
+    for stream in (sys.stderr, sys.__stderr__):
+        if stream is not None:
+            stream.flush()
     with tempfile.TemporaryFile(mode="w+b") as tmp:
         saved = os.dup(fd)
         try:

@@ -1,0 +1,245 @@
+"""``pranet-client``: register two point cloud files through a running ``pranet-serve``.
+
+    pranet-client register SOURCE TARGET [--url URL] [--api-key KEY] [--no-icp] [--json]
+                                         [--save-aligned OUT] [--plot OUT.png]
+    pranet-client health | ready | model [--url URL]
+
+The printed transform is ``T_target_source``: ``target ≈ R @ source + t``. Every failure (server
+unreachable, unreadable file, HTTP error) is one ``error: ...`` line on stderr and exit status 1;
+bad arguments exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from pranet.client.client import DEFAULT_URL, PranetClient, PranetError, RegistrationResult
+from pranet.client.io import SUPPORTED_SUFFIXES, PointCloudIOError, read_point_cloud, write_point_cloud
+
+URL_ENV = "PRANET_URL"
+API_KEY_ENV = "PRANET_API_KEY"
+PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
+PLOT_POINTS = 3000  # points per cloud drawn in the 3-D scatter plots
+
+
+class CliError(Exception):
+    """A user-facing error detected by the CLI itself (bad output path, ...)."""
+
+
+def apply_transform(T: npt.ArrayLike, points: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """``T: (4, 4)``, ``points: (N, 3)`` -> ``points @ R.T + t``."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def rotation_angle_deg(R: npt.ArrayLike) -> float:
+    cos = (np.trace(np.asarray(R, dtype=np.float64)) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def _common_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--url",
+        default=os.environ.get(URL_ENV, DEFAULT_URL),
+        help=f"service base URL (default: ${URL_ENV} or {DEFAULT_URL})",
+    )
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get(API_KEY_ENV),
+        help=f"bearer token, when the service was started with one (default: ${API_KEY_ENV})",
+    )
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds per request (default: 120)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pranet-client",
+        description="Client of the PRANet point cloud registration service.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    reg = sub.add_parser(
+        "register",
+        help="register SOURCE onto TARGET and print T_target_source",
+        description="Register SOURCE onto TARGET. Prints T_target_source (target ≈ R @ source + t). "
+        f"Files: {', '.join(SUPPORTED_SUFFIXES)}.",
+    )
+    reg.add_argument("source", type=Path, help="the cloud that is moved")
+    reg.add_argument("target", type=Path, help="the cloud it is aligned to")
+    _common_options(reg)
+    reg.add_argument("--no-icp", dest="icp", action="store_false", help="skip the ICP refinement (PRANet-v1)")
+    reg.add_argument("--json", action="store_true", help="print the raw JSON response instead of a summary")
+    reg.add_argument("--save-aligned", type=Path, metavar="OUT", help="write the transformed source to OUT")
+    reg.add_argument("--plot", type=Path, metavar="OUT", help="draw the clouds before/after and per-step curves")
+    reg.add_argument("--policy", help="action policy of the agent (server default when omitted)")
+    reg.add_argument("--seed", type=int, help="seed of the server's resampling")
+    reg.add_argument("--steps", type=int, help="number of agent steps (server default when omitted)")
+    reg.add_argument("--early-stop", action="store_true", default=None, help="stop the agent when it converges")
+
+    for name, text in (
+        ("health", "check that the service process is up (GET /health)"),
+        ("ready", "check that the model is loaded (GET /ready)"),
+        ("model", "show the served model (GET /model)"),
+    ):
+        _common_options(sub.add_parser(name, help=text, description=text))
+    return parser
+
+
+def _check_output(path: Path | None, suffixes: tuple[str, ...], what: str) -> None:
+    """Fail before the request, not after it, when an output path cannot be written."""
+    if path is None:
+        return
+    if path.suffix.lower() not in suffixes:
+        raise CliError(f"{path}: {what} must end in one of {', '.join(suffixes)}")
+    if not path.parent.is_dir():
+        raise CliError(f"{path}: folder {path.parent} does not exist")
+
+
+def format_summary(result: RegistrationResult, source: Path, target: Path, n_source: int, n_target: int) -> str:
+    T = result.transform
+    lines = [f"source: {source} ({n_source} points) -> target: {target} ({n_target} points)"]
+    if result.model:
+        m = result.model
+        lines.append(f"model: {m.get('name')} {m.get('version')} (sha256 {str(m.get('sha256', ''))[:12]})")
+    lines.append("T_target_source (target ≈ R @ source + t):")
+    with np.printoptions(precision=6, suppress=True, floatmode="fixed", sign=" "):
+        lines.extend("  " + row for row in str(T).replace("[", " ").replace("]", " ").splitlines())
+    lines.append(f"rotation: {rotation_angle_deg(T[:3, :3]):.3f} deg, translation: {np.linalg.norm(T[:3, 3]):.6g}")
+    icp = result.icp
+    if icp and icp.get("applied"):
+        lines.append(f"ICP: fitness {icp.get('fitness', float('nan')):.4f}, inlier_rmse {icp.get('inlier_rmse'):.6g}")
+    else:
+        lines.append("ICP: not applied")
+    if result.confidence is not None or result.status is not None:
+        parts = []
+        if result.status is not None:
+            parts.append(f"status: {result.status}")
+        if result.confidence is not None:
+            parts.append(f"confidence: {result.confidence:.3f}")
+        lines.append(", ".join(parts))
+    if result.timing_ms:
+        timing = ", ".join(f"{k} {float(v):.1f}" for k, v in result.timing_ms.items())
+        lines.append(f"timing (ms): {timing}")
+    return "\n".join(lines)
+
+
+def plot_registration(
+    path: Path, source: npt.ArrayLike, target: npt.ArrayLike, result: RegistrationResult, seed: int = 0
+) -> Path:
+    """Draw source/target before and after (3-D scatter, subsampled) and per-step curves to ``path``.
+
+    The curves show each trajectory step's ``T_target_source`` against the final transform: the
+    rotation angle of ``R_final^T R_step`` (degrees) and ``|t_step - t_final|`` (cloud units).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    rng = np.random.default_rng(seed)
+
+    def subsample(p: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        return p if len(p) <= PLOT_POINTS else p[rng.choice(len(p), PLOT_POINTS, replace=False)]
+
+    src = subsample(np.asarray(source, dtype=np.float64))
+    tgt = subsample(np.asarray(target, dtype=np.float64))
+    aligned = apply_transform(result.transform, src)
+
+    fig = Figure(figsize=(12, 9), layout="constrained")
+    FigureCanvasAgg(fig)
+    for i, (title, moved) in enumerate((("before (input)", src), ("after (registered)", aligned))):
+        ax = fig.add_subplot(2, 2, i + 1, projection="3d")
+        ax.scatter(*tgt.T, s=1, c="tab:blue", label="target", depthshade=False)
+        ax.scatter(*moved.T, s=1, c="tab:orange", label="source", depthshade=False)
+        ax.set_title(title)
+        ax.set_box_aspect((1, 1, 1))
+        ax.legend(loc="upper right", markerscale=6)
+
+    final = result.transform
+    steps = [0] + [s.step for s in result.trajectory]
+    transforms = [np.eye(4)] + [s.transform for s in result.trajectory]
+    angles = [rotation_angle_deg(final[:3, :3].T @ T[:3, :3]) for T in transforms]
+    offsets = [float(np.linalg.norm(T[:3, 3] - final[:3, 3])) for T in transforms]
+    for j, (values, label) in enumerate(
+        ((angles, "rotation to final (deg)"), (offsets, "translation to final (cloud units)"))
+    ):
+        ax = fig.add_subplot(2, 2, 3 + j)
+        if result.trajectory:
+            ax.plot(steps, values, marker=".", lw=1)
+        else:
+            ax.text(0.5, 0.5, "no trajectory in the response", ha="center", va="center", transform=ax.transAxes)
+        ax.set_xlabel("agent step (0 = input)")
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    icp = result.icp or {}
+    fig.suptitle(
+        f"T_target_source: {rotation_angle_deg(final[:3, :3]):.2f} deg, |t| {np.linalg.norm(final[:3, 3]):.4g}"
+        + (f"; ICP fitness {icp.get('fitness', 0.0):.3f}" if icp.get("applied") else "; no ICP")
+    )
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def _register(args: argparse.Namespace, client: PranetClient) -> int:
+    for p in (args.source, args.target):
+        if p.suffix.lower() not in SUPPORTED_SUFFIXES and p.exists():
+            raise CliError(f"{p}: unsupported file type; use one of {', '.join(SUPPORTED_SUFFIXES)}")
+    _check_output(args.save_aligned, SUPPORTED_SUFFIXES, "--save-aligned")
+    _check_output(args.plot, PLOT_SUFFIXES, "--plot")
+    source = read_point_cloud(args.source)
+    target = read_point_cloud(args.target)
+    options: dict[str, Any] = {
+        "policy": args.policy,
+        "seed": args.seed,
+        "steps": args.steps,
+        "early_stop": args.early_stop,
+        "return_trajectory": True if args.plot else None,
+    }
+    result = client.register(source, target, icp=args.icp, **options)
+    if args.json:
+        print(json.dumps(result.raw, indent=2))
+    else:
+        print(format_summary(result, args.source, args.target, len(source), len(target)))
+    out = sys.stderr if args.json else sys.stdout
+    if args.save_aligned:
+        write_point_cloud(args.save_aligned, apply_transform(result.transform, source))
+        print(f"aligned source written to {args.save_aligned}", file=out)
+    if args.plot:
+        plot_registration(args.plot, source, target, result)
+        print(f"plot written to {args.plot}", file=out)
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    with PranetClient(args.url, api_key=args.api_key, timeout=args.timeout) as client:
+        if args.command == "register":
+            return _register(args, client)
+        body = {"health": client.health, "ready": client.ready, "model": client.model}[args.command]()
+        print(json.dumps(body, indent=2))
+        return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except (PranetError, PointCloudIOError, CliError, OSError, ValueError) as e:
+        message = " ".join(str(e).split()) or type(e).__name__
+        print(f"error: {message}", file=sys.stderr)
+        return 1
+    except Exception as e:  # noqa: BLE001 - the CLI promises one line, never a traceback
+        message = " ".join(str(e).split())
+        print(f"error: unexpected {type(e).__name__}: {message}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,142 @@
+"""Fixtures of the client tests: canned service responses on a real loopback HTTP server, and a real
+``pranet-serve`` subprocess for the end-to-end tests."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+
+import pytest
+from client_helpers import free_port
+
+SERVER_START_TIMEOUT_S = 120.0
+
+
+@dataclass
+class FakeService:
+    """A loopback HTTP server answering from ``routes``; records every request it gets."""
+
+    url: str
+    routes: dict[tuple[str, str], Callable[[dict[str, Any] | None], tuple[int, Any]]]
+    requests: list[dict[str, Any]] = field(default_factory=list)
+
+
+@pytest.fixture
+def fake_service() -> Iterator[FakeService]:
+    service = FakeService(url="", routes={})
+
+    class Handler(BaseHTTPRequestHandler):
+        def _answer(self, method: str) -> None:
+            length = int(self.headers.get("Content-Length") or 0)
+            raw = self.rfile.read(length) if length else b""
+            body = json.loads(raw) if raw else None
+            service.requests.append({"method": method, "path": self.path, "headers": dict(self.headers), "json": body})
+            handler = service.routes.get((method, self.path))
+            status, payload = handler(body) if handler else (404, {"detail": "Not Found"})
+            data = payload.encode() if isinstance(payload, str) else json.dumps(payload).encode()
+            self.send_response(status)
+            self.send_header("Content-Type", "text/plain" if isinstance(payload, str) else "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+            self._answer("GET")
+
+        def do_POST(self) -> None:  # noqa: N802
+            self._answer("POST")
+
+        def log_message(self, *args: Any) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    service.url = f"http://127.0.0.1:{server.server_address[1]}"
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield service
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def console_script(name: str) -> str:
+    """The console script ``name`` of this interpreter's environment (else the one on PATH)."""
+    beside = Path(sys.executable).parent / name
+    if beside.exists():
+        return str(beside)
+    found = shutil.which(name)
+    if found is None:
+        pytest.fail(f"console script {name} not installed: pip install -e '.[dev]'")
+    return found
+
+
+def clean_env(**extra: str) -> dict[str, str]:
+    """The test process's environment without PRANET_* settings (so the developer's shell cannot leak in)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PRANET_") or k == "PRANET_DATA_DIR"}
+    env.update(extra)
+    return env
+
+
+@dataclass
+class Server:
+    url: str
+    process: subprocess.Popen
+    log: Path
+
+
+def start_server(tmp_dir: Path, api_key: str | None = None) -> Server:
+    """Start ``pranet-serve`` (shipped model, one worker) on a free loopback port; wait for ``/ready``."""
+    from pranet.client import PranetClient, PranetError
+
+    port = free_port()
+    log = tmp_dir / f"pranet-serve-{port}.log"
+    env = clean_env(PRANET_THREADS="1")
+    if api_key:
+        env["PRANET_API_KEY"] = api_key
+    cmd = [console_script("pranet-serve"), "--host", "127.0.0.1", "--port", str(port), "--workers", "1"]
+    with open(log, "wb") as out:
+        process = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
+    server = Server(f"http://127.0.0.1:{port}", process, log)
+    deadline = time.monotonic() + SERVER_START_TIMEOUT_S
+    with PranetClient(server.url, api_key=api_key, timeout=5.0) as client:
+        while True:
+            if process.poll() is not None:
+                pytest.fail(f"pranet-serve exited with {process.returncode}:\n{log.read_text()[-3000:]}")
+            try:
+                client.ready()
+                return server
+            except PranetError:
+                if time.monotonic() > deadline:
+                    stop_server(server)
+                    pytest.fail(f"pranet-serve not ready in {SERVER_START_TIMEOUT_S} s:\n{log.read_text()[-3000:]}")
+            time.sleep(0.25)
+
+
+def stop_server(server: Server) -> None:
+    server.process.terminate()
+    try:
+        server.process.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        server.process.kill()
+        server.process.wait(timeout=10)
+
+
+@pytest.fixture(scope="session")
+def pranet_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """A real ``pranet-serve`` with the shipped model, shared by the end-to-end tests."""
+    server = start_server(tmp_path_factory.mktemp("server"))
+    try:
+        yield server
+    finally:
+        stop_server(server)
