@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+
 from pranet.core.se3 import Array, axis_rotation
 
 AXES = "xyz"

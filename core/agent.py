@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
+
 from pranet.core.actions import DEFAULT_SCHEDULE, ActionTable
 from pranet.core.se3 import Array, make_transform
 

@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import numpy.typing as npt
+
 from pranet.core.se3 import Array, apply_transform, inverse, rotation_angle
 
 SUCCESS_ROTATION_DEG = 1.0

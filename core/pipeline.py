@@ -13,6 +13,7 @@ from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
+
 from pranet.core.actions import ActionTable
 from pranet.core.agent import AgentResult, ScoreFn, run_agent
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample

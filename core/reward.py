@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import numpy.typing as npt
+
 from pranet.core.actions import ActionTable
 from pranet.core.se3 import Array, rotation_angle
 

@@ -8,6 +8,7 @@ for the ablation. Every function takes an explicit ``np.random.Generator``.
 from __future__ import annotations
 
 import numpy as np
+
 from pranet.core.se3 import Array, axis_angle_to_matrix
 
 _GRID = 4097

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
 from pranet.core.actions import build_action_table
 from pranet.model.config import NetConfig
 from pranet.model.network import EmbedGraph, RewardNet, ScoreGraph

@@ -13,9 +13,10 @@ FLOPs). ``naive_edge_conv`` keeps the textbook form for the equivalence test.
 from __future__ import annotations
 
 import torch
+from torch import Tensor, nn
+
 from pranet.core.actions import ActionTable
 from pranet.model.config import NetConfig
-from torch import Tensor, nn
 
 
 def gather_neighbors(x: Tensor, idx: Tensor) -> Tensor:

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
 from pranet.core.actions import ActionTable, build_action_table
 from pranet.core.agent import ScoreFn
 from pranet.core.knn import knn_indices

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from pranet.core.actions import ActionTable
 from pranet.core.reward import point_rewards, true_rewards
 from pranet.core.sampling import sample_rotations, sample_translations, sample_unit_vectors
@@ -103,6 +104,15 @@ class StateDistribution:
         )
 
 
+@dataclass(frozen=True)
+class TrainingState:
+    source: Array  # (Ns, 3) in its current pose
+    target: Array  # (Nt, 3)
+    rewards: Array  # (A,) labels
+    R_err: Array  # (3, 3) rotation still to apply about the source centroid
+    t_err: Array  # (3,) translation still to apply to the source centroid
+
+
 def training_state(
     shape: Array,
     setting: str,
@@ -110,8 +120,8 @@ def training_state(
     table: ActionTable,
     rng: np.random.Generator,
     reward: str = "se3",
-) -> tuple[Array, Array, Array]:
-    """One supervised sample: ``(source (Ns, 3) in its current pose, target (Nt, 3), rewards (A,))``.
+) -> TrainingState:
+    """One supervised sample: the source in its current pose, the target, and the rewards.
 
     The pair is first placed in a random common orientation ``Q`` (rewards depend only on the error
     state, so this is exact augmentation and covers the poses the agent visits mid-trajectory). Then
@@ -130,7 +140,7 @@ def training_state(
         clean = np.asarray(shape, np.float64) @ Q.T
         clean_rel = (clean - m_true) @ R_err  # clean shape in the source's current pose, relative to c
         rewards = point_rewards(clean_rel, R_err, t_err, table, kind=reward)
-    return source, tgt, rewards
+    return TrainingState(source, tgt, rewards, R_err, t_err)
 
 
 def curriculum_states(

@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as dist
+from torch.utils.data import DataLoader, Dataset
+
 from pranet.core.actions import ActionTable, build_action_table
 from pranet.core.knn import knn_indices
 from pranet.core.preprocess import resample
@@ -27,7 +29,6 @@ from pranet.model.network import RewardNet
 from pranet.training.config import PRESETS, TrainConfig, parse_override
 from pranet.training.data import data_dir, load_modelnet40, split_train_val
 from pranet.training.samples import StateDistribution, curriculum_states, training_state
-from torch.utils.data import DataLoader, Dataset
 
 
 class StateDataset(Dataset):
@@ -56,9 +57,8 @@ class StateDataset(Dataset):
     def __getitem__(self, i: int) -> tuple[torch.Tensor, ...]:
         rng = np.random.default_rng([*self.seed_key, i])
         setting = self.setting_names[int(rng.choice(len(self.setting_names), p=self.setting_p))]
-        src, tgt, rewards = training_state(
-            self.shapes[i], setting, self.states, self.table, rng, self.cfg.sampling.reward
-        )
+        state = training_state(self.shapes[i], setting, self.states, self.table, rng, self.cfg.sampling.reward)
+        src, tgt, rewards = state.source, state.target, state.rewards
         n, k = self.cfg.net.n_points, self.cfg.net.k
         src, tgt = resample(src, n, rng).astype(np.float32), resample(tgt, n, rng).astype(np.float32)
         return (
@@ -115,6 +115,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--limit", type=int, help="use only this many training shapes and validation samples (smoke runs)")
     p.add_argument("--data-dir", help="data root (default $PRANET_DATA_DIR or ../shared/data)")
     p.add_argument("--workers", type=int, default=1, help="data-loader worker processes")
+    p.add_argument("--stop-after", type=int, help="train at most this many epochs in this invocation (resume later)")
     p.add_argument("--no-progress", action="store_true")
     return p.parse_args(argv)
 
@@ -209,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
         log_path.write_text("epoch,train_loss,val_loss,lr,samples,epoch_s,wall_s\n")
 
     s = cfg.sampling
-    for epoch in range(start_epoch, cfg.optim.epochs):
+    end_epoch = cfg.optim.epochs if args.stop_after is None else min(cfg.optim.epochs, start_epoch + args.stop_after)
+    for epoch in range(start_epoch, end_epoch):
         t0 = time.time()
         comps = curriculum_states(epoch, cfg.optim.epochs, s.curriculum, s.full, s.small, s.curriculum_fraction)
         states = StateDistribution(comps, s.rotation, s.orientation_max_deg)
@@ -277,10 +279,11 @@ def main(argv: list[str] | None = None) -> int:
             writer.add_scalar("lr", lr, epoch)
             writer.flush()
         print(
-            f"epoch {epoch + 1}/{cfg.optim.epochs} train {train_loss:.5f} val {val_loss:.5f} lr {lr:.3g} {epoch_s:.0f}s",
+            f"epoch {epoch + 1}/{cfg.optim.epochs} train {train_loss:.5f} val {val_loss:.5f} "
+            f"lr {lr:.3g} {epoch_s:.0f}s",
             flush=True,
         )
-    if rank == 0:
+    if rank == 0 and end_epoch == cfg.optim.epochs:
         summary = {
             "preset": cfg.preset,
             "epochs": cfg.optim.epochs,

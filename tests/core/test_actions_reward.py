@@ -1,0 +1,96 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pranet.core.actions import DEFAULT_SCALES, build_action_table
+from pranet.core.reward import normalize_per_scale, point_rewards, se3_distance, true_rewards
+
+
+def test_default_table_is_the_papers_24_actions():
+    table = build_action_table()
+    assert len(table) == 24
+    assert table.scales == DEFAULT_SCALES
+    for scale, (deg, dist) in enumerate(DEFAULT_SCALES):
+        idx = table.indices_of_scale(scale)
+        assert len(idx) == 12
+        rot = [table.actions[i] for i in idx if table.actions[i].kind == "rotation"]
+        trans = [table.actions[i] for i in idx if table.actions[i].kind == "translation"]
+        assert sorted((a.axis, a.sign) for a in rot) == sorted((a, s) for a in range(3) for s in (1, -1))
+        assert all(np.isclose(np.rad2deg(a.step), deg) for a in rot)
+        assert all(np.isclose(a.step, dist) for a in trans)
+    # Each rotation action is the scipy rotation about its axis; translations are axis vectors.
+    for i, a in enumerate(table.actions):
+        if a.kind == "rotation":
+            ref = Rotation.from_euler("xyz"[a.axis], a.sign * a.step).as_matrix()
+            np.testing.assert_allclose(table.rotations[i], ref, atol=1e-12)
+            assert not table.translations[i].any()
+        else:
+            np.testing.assert_allclose(table.rotations[i], np.eye(3))
+            assert table.translations[i][a.axis] == pytest.approx(a.sign * a.step)
+
+
+def test_third_scale_from_data_and_fingerprint_changes():
+    t2 = build_action_table()
+    t3 = build_action_table([*DEFAULT_SCALES, (0.05, 0.001)])
+    assert len(t3) == 36 and len(t3.indices_of_scale(2)) == 12
+    assert t2.fingerprint != t3.fingerprint
+    assert build_action_table().fingerprint == t2.fingerprint
+
+
+def test_reward_definition_against_direct_computation():
+    """r_a(T) = D(T, 1) - D(a ⊕ T, 1), recomputed action by action, unnormalised."""
+    table = build_action_table()
+    rng = np.random.default_rng(0)
+    R = Rotation.random(random_state=5).as_matrix()
+    t = rng.uniform(-0.5, 0.5, 3)
+    r = true_rewards(R, t, table, normalize=False)
+    for i, a in enumerate(table.actions):
+        if a.kind == "rotation":
+            after = se3_distance(R @ table.rotations[i].T, t)
+        else:
+            after = se3_distance(R, t - table.translations[i])
+        assert r[i] == pytest.approx(se3_distance(R, t) - after, abs=1e-12)
+
+
+def test_rewards_are_decoupled_and_signed():
+    table = build_action_table()
+    # Pure translation error along +x: +x translation actions improve; rotation rewards only see the
+    # rotation term (the translation terms cancel): each rotation costs exactly its own angle.
+    r = true_rewards(np.eye(3), np.array([0.3, 0.0, 0.0]), table, normalize=False)
+    assert r[table.names.index("trans+x:0.1")] == pytest.approx(0.1)
+    assert r[table.names.index("trans-x:0.1")] == pytest.approx(-0.1)
+    steps = np.array([table.actions[i].step for i in table.rotation_indices])
+    np.testing.assert_allclose(r[table.rotation_indices], -steps, atol=1e-12)
+    # Pure rotation error of 30° about z: rot+z decreases the error by 10°.
+    Rz = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    r = true_rewards(Rz, np.zeros(3), table, normalize=False)
+    assert r[table.names.index("rot+z:10deg")] == pytest.approx(np.deg2rad(10))
+    assert r[table.names.index("rot-z:10deg")] == pytest.approx(-np.deg2rad(10))
+    steps = np.array([table.actions[i].step for i in table.translation_indices])
+    np.testing.assert_allclose(r[table.translation_indices], -steps, atol=1e-12)
+
+
+def test_normalisation_per_scale_and_batch_equals_single():
+    table = build_action_table()
+    rng = np.random.default_rng(1)
+    Rs = Rotation.random(8, random_state=9).as_matrix()
+    ts = rng.uniform(-0.5, 0.5, (8, 3))
+    batch = true_rewards(Rs, ts, table)
+    for s in range(2):
+        np.testing.assert_allclose(np.linalg.norm(batch[:, table.indices_of_scale(s)], axis=1), 1.0)
+    for i in range(8):
+        np.testing.assert_allclose(batch[i], true_rewards(Rs[i], ts[i], table))
+    np.testing.assert_allclose(normalize_per_scale(np.zeros(24), table), 0.0)
+
+
+def test_point_rewards_agree_in_sign_with_se3_rewards_for_translations():
+    table = build_action_table()
+    rng = np.random.default_rng(2)
+    P = rng.standard_normal((200, 3)) * 0.3
+    t = np.array([0.2, -0.1, 0.05])
+    r_l2 = point_rewards(P, np.eye(3), t, table, kind="l2")
+    r_se3 = true_rewards(np.eye(3), t, table)
+    tr = table.translation_indices
+    assert (np.sign(r_l2[tr]) == np.sign(r_se3[tr])).mean() > 0.9
+    r_mcd = point_rewards(P, np.eye(3), t, table, kind="mcd")
+    assert np.argmax(r_mcd[table.indices_of_scale(0)]) == np.argmax(r_se3[table.indices_of_scale(0)])

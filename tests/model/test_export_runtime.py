@@ -1,0 +1,115 @@
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytest.importorskip("onnxruntime")
+
+from pranet.core.actions import build_action_table  # noqa: E402
+from pranet.core.knn import knn_indices  # noqa: E402
+from pranet.model.config import NetConfig  # noqa: E402
+from pranet.model.export import export_model  # noqa: E402
+from pranet.model.network import RewardNet  # noqa: E402
+from pranet.model.runtime import ModelLoadError, RewardModel, default_model_dir, read_card  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    torch.manual_seed(0)
+    table = build_action_table()
+    cfg = NetConfig(n_points=128, pool="maxmean")
+    net = RewardNet(cfg, table).eval()
+    out = tmp_path_factory.mktemp("model")
+    card = {
+        "name": "test",
+        "version": "0",
+        "preset": "test",
+        "n_points": 128,
+        "k": cfg.k,
+        "actions": {
+            "scales": [list(s) for s in table.scales],
+            "names": list(table.names),
+            "fingerprint": table.fingerprint,
+        },
+        "schedule": [20, 40],
+        "net": cfg.to_dict(),
+        "training": {},
+    }
+    export_model(net, out, card)
+    return net, out
+
+
+def test_torch_and_onnxruntime_agree(exported):
+    net, out = exported
+    model = RewardModel.load(out, threads=1)
+    rng = np.random.default_rng(0)
+    for n_src, n_tgt in [(128, 128), (100, 173)]:  # dynamic point counts
+        src = rng.standard_normal((n_src, 3)).astype(np.float32) * 0.4
+        tgt = rng.standard_normal((n_tgt, 3)).astype(np.float32) * 0.4 + 0.1
+        ort_rewards = model.score_fn(tgt)(src, tgt)
+        with torch.no_grad():
+            ref = net(
+                torch.from_numpy(src[None]),
+                torch.from_numpy(knn_indices(src[None], 16)),
+                torch.from_numpy(tgt[None]),
+                torch.from_numpy(knn_indices(tgt[None], 16)),
+            )[0].numpy()
+        np.testing.assert_allclose(ort_rewards, ref, rtol=1e-4, atol=1e-5)
+
+
+def test_batched_score_matches_single(exported):
+    _, out = exported
+    model = RewardModel.load(out, threads=1)
+    rng = np.random.default_rng(1)
+    srcs = rng.standard_normal((3, 128, 3)).astype(np.float32)
+    tgt = rng.standard_normal((128, 3)).astype(np.float32)
+    tf, tc, _ = model.embed(tgt)
+    knn = knn_indices(srcs, model.k)
+    batch = model.score(srcs, knn, np.repeat(tf, 3, 0), np.repeat(tc, 3, 0))
+    for i in range(3):
+        np.testing.assert_allclose(batch[i], model.score_fn(tgt)(srcs[i], tgt), rtol=1e-4, atol=1e-5)
+
+
+def test_metadata_and_card(exported):
+    import onnx
+
+    _, out = exported
+    card = read_card(out)
+    meta = {p.key: p.value for p in onnx.load(str(out / "score.onnx")).metadata_props}
+    assert (
+        json.loads(meta["actions"])["fingerprint"] == build_action_table().fingerprint == card["actions"]["fingerprint"]
+    )
+    assert json.loads(meta["n_points"]) == 128 and json.loads(meta["preset"]) == "test"
+
+
+def test_corrupt_missing_and_mismatched_models_are_refused(exported, tmp_path):
+    _, out = exported
+    bad = tmp_path / "bad"
+    shutil.copytree(out, bad)
+    data = bytearray((bad / "score.onnx").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (bad / "score.onnx").write_bytes(bytes(data))
+    with pytest.raises(ModelLoadError, match="sha256"):
+        RewardModel.load(bad)
+    (bad / "score.onnx").unlink()
+    with pytest.raises(ModelLoadError, match="missing"):
+        RewardModel.load(bad)
+    with pytest.raises(ModelLoadError, match="no model card"):
+        RewardModel.load(tmp_path / "nowhere")
+    mism = tmp_path / "mismatch"
+    shutil.copytree(out, mism)
+    card = json.loads((mism / "card.json").read_text())
+    card["actions"]["fingerprint"] = "0" * 64
+    (mism / "card.json").write_text(json.dumps(card))
+    with pytest.raises(ModelLoadError, match="action table mismatch"):
+        RewardModel.load(mism)
+
+
+def test_shipped_model_loads_and_matches_this_action_table():
+    model = RewardModel.load(default_model_dir())
+    assert model.card["actions"]["fingerprint"] == build_action_table(model.card["actions"]["scales"]).fingerprint
+    assert model.schedule == (20, 40) and len(model.table) == 24
+    tgt = np.random.default_rng(0).standard_normal((model.n_points, 3))
+    assert np.isfinite(model.score_fn(tgt)(tgt, tgt)).all()

@@ -1,0 +1,102 @@
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("torch")
+
+from pranet.training.train import main  # noqa: E402
+
+
+def test_print_config_shows_the_papers_numbers(capsys):
+    assert main(["--preset", "paper", "--print-config"]) == 0
+    cfg = json.loads(capsys.readouterr().out)
+    assert cfg["net"]["edge_widths"] == [64, 64, 128, 256, 1024] and cfg["net"]["k"] == 20
+    assert cfg["net"]["heads"] == 4 and cfg["net"]["emb_dim"] == 1024
+    o = cfg["optim"]
+    assert (o["optimizer"], o["lr"], o["milestones"], o["epochs"], o["weight_decay"]) == (
+        "sgd",
+        0.1,
+        [300, 700, 1000],
+        1300,
+        1e-4,
+    )
+    assert cfg["seed"] == 1234 and cfg["sampling"]["rotation"] == "isotropic"
+    assert cfg["sampling"]["small"] == [10.0, 0.5 / 7]
+
+
+def test_smoke_run_and_resume(tmp_path, data_root):
+    def args(out, *extra):
+        return [
+            "--preset",
+            "cpu",
+            "--limit",
+            "16",
+            "--set",
+            "optim.batch_size=8",
+            "--epochs",
+            "2",
+            "--out",
+            str(out),
+            "--data-dir",
+            str(data_root),
+            "--no-progress",
+            "--workers",
+            "0",
+            *extra,
+        ]
+
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    assert main(args(straight)) == 0
+    rows = list(csv.DictReader(open(straight / "log.csv")))
+    assert [r["epoch"] for r in rows] == ["0", "1"] and all(float(r["val_loss"]) > 0 for r in rows)
+    summary = json.loads((straight / "summary.json").read_text())
+    assert summary["epochs"] == 2 and len(summary["data_sha256"]) == 64
+    # Interrupted after one epoch, then resumed: the same result as the straight run.
+    assert main(args(split, "--stop-after", "1")) == 0
+    assert not (split / "summary.json").exists()
+    with pytest.raises(SystemExit, match="different config"):
+        main(args(split, "--resume", "--set", "optim.lr=0.5"))
+    assert main(args(split, "--resume")) == 0
+    resumed = list(csv.DictReader(open(split / "log.csv")))
+    assert [r["epoch"] for r in resumed] == ["0", "1"]
+    assert float(resumed[1]["val_loss"]) == pytest.approx(float(rows[1]["val_loss"]), rel=1e-5)
+
+
+@pytest.mark.slow
+def test_ddp_two_processes(tmp_path, data_root):
+    out = tmp_path / "ddp"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node=2",
+        "--master_port=29533",
+        "-m",
+        "pranet.training.train",
+        "--preset",
+        "cpu",
+        "--limit",
+        "16",
+        "--epochs",
+        "1",
+        "--set",
+        "optim.batch_size=4",
+        "--out",
+        str(out),
+        "--data-dir",
+        str(data_root),
+        "--no-progress",
+        "--workers",
+        "0",
+    ]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["world_size"] == 2
+    rows = list(csv.DictReader(open(out / "log.csv")))
+    assert len(rows) == 1 and int(rows[0]["samples"]) == 16  # 2 ranks x 2 batches x 4
