@@ -1,0 +1,145 @@
+"""One registration request, framework-free: body bytes -> clouds -> ``core.pipeline.register`` -> response.
+
+Runs in a worker thread (it is CPU-bound); raises ``RequestError`` for anything the client can fix.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import time
+
+import numpy as np
+from pranet.core.agent import AgentTimeout
+from pranet.core.pipeline import IcpFn, Registration, Scorer, register
+from pranet.core.preprocess import DegenerateCloudError
+from pranet.service.schemas import (
+    MAX_ABS_COORDINATE,
+    EncodedCloud,
+    IcpInfo,
+    ModelInfo,
+    RegisterRequest,
+    RegisterResponse,
+    TrajectoryStep,
+)
+from pydantic import ValidationError
+
+
+class RequestError(Exception):
+    """A request the service refuses: ``status`` (HTTP) and ``detail`` (message or field errors)."""
+
+    def __init__(self, status: int, detail: str | list[dict]):
+        super().__init__(detail if isinstance(detail, str) else str(detail))
+        self.status = status
+        self.detail = detail
+
+
+def validation_detail(error: ValidationError) -> list[dict]:
+    """pydantic's errors without the (possibly huge) input echo or non-JSON context."""
+    return error.errors(include_url=False, include_input=False, include_context=False)
+
+
+def parse_request(body: bytes) -> RegisterRequest:
+    try:
+        return RegisterRequest.model_validate_json(body)
+    except ValidationError as e:
+        raise RequestError(422, validation_detail(e)) from None
+
+
+def decode_cloud(cloud: list[list[float]] | EncodedCloud, name: str, max_points: int) -> np.ndarray:
+    """A request cloud -> ``(N, 3)`` float64; 413 past ``max_points``, 422 for undecodable data."""
+    if isinstance(cloud, EncodedCloud):
+        n_bytes = len(cloud.data) // 4 * 3  # upper bound before decoding
+        if n_bytes // 12 > max_points + 1:
+            raise RequestError(413, f"{name}: more than the server's limit of {max_points} points")
+        try:
+            raw = base64.b64decode(cloud.data, validate=True)
+        except (binascii.Error, ValueError) as e:
+            raise RequestError(422, f"{name}.data: invalid base64 ({e})") from None
+        if len(raw) % 12:
+            raise RequestError(
+                422, f"{name}.data: {len(raw)} bytes is not a whole number of float32 (x, y, z) points (12 bytes each)"
+            )
+        points = np.frombuffer(raw, dtype="<f4").reshape(-1, 3).astype(np.float64)
+        # NaN/inf are reported by check_cloud (in register); finite but huge values are refused here.
+        finite = points[np.isfinite(points)]
+        if finite.size and np.abs(finite).max() > MAX_ABS_COORDINATE:
+            raise RequestError(422, f"{name}: coordinates must satisfy |x| <= {MAX_ABS_COORDINATE:g}")
+    else:
+        points = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)  # (N, 3); the schema fixed 3 per point
+    if len(points) > max_points:
+        raise RequestError(413, f"{name}: {len(points)} points, more than the server's limit of {max_points}")
+    return points
+
+
+def _matrix(a: np.ndarray) -> list[list[float]]:
+    return [[float(x) for x in row] for row in a]
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
+
+
+def run_registration(
+    body: bytes,
+    scorer: Scorer,
+    model_info: dict,
+    icp: IcpFn | None,
+    max_points: int,
+    deadline: float,
+) -> RegisterResponse:
+    """Parse ``body`` (JSON bytes), register, and build the response. ``deadline``: ``time.monotonic()`` s."""
+    t0 = time.perf_counter()
+    # 1. Parse and decode both clouds.
+    req = parse_request(body)
+    source = decode_cloud(req.source, "source", max_points)
+    target = decode_cloud(req.target, "target", max_points)
+    schedule = None
+    if req.steps is not None:
+        n_scales = len(scorer.schedule)
+        if len(req.steps) != n_scales:
+            raise RequestError(
+                422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts"
+            )
+        schedule = tuple(req.steps)
+    decode_ms = (time.perf_counter() - t0) * 1e3
+    if time.monotonic() > deadline:
+        raise RequestError(504, "registration exceeded the server's time limit before it started (queued too long)")
+    # 2. Register (agent, then optional ICP).
+    try:
+        result: Registration = register(
+            source,
+            target,
+            scorer,
+            np.random.default_rng(req.seed),
+            icp=icp if req.icp else None,
+            policy=req.policy,
+            early_stop=req.early_stop,
+            schedule=schedule,
+            deadline=deadline,
+        )
+    except DegenerateCloudError as e:
+        raise RequestError(422, str(e)) from None
+    except AgentTimeout as e:
+        raise RequestError(504, f"{e} (server limit; ask for fewer steps or a smaller cloud)") from None
+    # 3. Build the response, in the input units.
+    T = result.transform
+    timing = {"decode": decode_ms, **result.timing_ms}
+    timing["total"] = (time.perf_counter() - t0) * 1e3
+    return RegisterResponse(
+        transform=_matrix(T),
+        rotation=_matrix(T[:3, :3]),
+        translation=[float(x) for x in T[:3, 3]],
+        trajectory=[TrajectoryStep(step=s, action=name, transform=_matrix(Ts)) for s, name, Ts in result.trajectory]
+        if req.return_trajectory
+        else [],
+        icp=IcpInfo(
+            applied=result.icp is not None,
+            fitness=_finite_or_none(result.icp.fitness) if result.icp else None,
+            inlier_rmse=_finite_or_none(result.icp.inlier_rmse) if result.icp else None,
+        ),
+        timing_ms=timing,
+        model=ModelInfo(**model_info),
+        n_source=result.n_source,
+        n_target=result.n_target,
+    )

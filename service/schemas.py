@@ -1,0 +1,136 @@
+"""Request and response bodies of the HTTP API (pydantic v2). No logic here: see ``registration.py``.
+
+Frame convention: every transform is ``T_target_source``, a 4x4 homogeneous matrix that maps the
+source onto the target: ``target ≈ R @ source + t``, in the units of the input clouds.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
+
+MAX_ABS_COORDINATE = 1e9  # input units; keeps every intermediate (centroids, SVD) far from overflow
+MAX_STEPS_PER_SCALE = 200
+ENCODING = "base64-float32-le"
+
+Coordinate = Annotated[
+    float,
+    Field(
+        strict=True,
+        allow_inf_nan=False,
+        ge=-MAX_ABS_COORDINATE,
+        le=MAX_ABS_COORDINATE,
+        description="a coordinate in the cloud's own units (any: m, mm, ...)",
+    ),
+]
+Point = Annotated[list[Coordinate], Field(min_length=3, max_length=3, description="[x, y, z]")]
+Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4, description="4x4 row-major matrix")]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class EncodedCloud(_Strict):
+    """A cloud as ``N * 3`` little-endian float32 values ``x0 y0 z0 x1 y1 z1 ...``, base64-encoded (RFC 4648).
+
+    About 4x smaller and much faster to parse than the nested list; ``N`` is ``len(decoded) / 12``.
+    """
+
+    encoding: Literal["base64-float32-le"] = Field(description="the only encoding: base64 of float32 little-endian")
+    data: str = Field(
+        pattern=r"^[A-Za-z0-9+/]*={0,2}$",
+        description="standard base64 (with padding) of N*3 float32 little-endian values, row-major (N, 3)",
+        examples=["AAAAAAAAAAAAAAAAAACAPwAAAAAAAAAAAAAAAAAAgD8AAAAAAAAAAAAAAAAAAIA/AACAPwAAgD8AAIA/"],
+    )
+
+
+def _cloud_kind(value: Any) -> str:
+    return "encoded" if isinstance(value, dict | EncodedCloud) else "list"
+
+
+PointList = Annotated[list[Point], Field(min_length=3, description="nested list of N >= 3 points [[x, y, z], ...]")]
+Cloud = Annotated[
+    Annotated[PointList, Tag("list")] | Annotated[EncodedCloud, Tag("encoded")],
+    Discriminator(_cloud_kind),
+    Field(
+        description=(
+            "a point cloud (N, 3) in any units: EITHER a nested list [[x, y, z], ...] OR "
+            f'{{"encoding": "{ENCODING}", "data": "<base64>"}}. Coordinates must be finite with '
+            f"|x| <= {MAX_ABS_COORDINATE:g}; the point count is limited by the server (PRANET_MAX_POINTS)."
+        )
+    ),
+]
+
+
+class RegisterRequest(_Strict):
+    """Register ``source`` onto ``target``; the answer is ``T_target_source`` (target ≈ R @ source + t)."""
+
+    source: Cloud
+    target: Cloud
+    icp: bool = Field(True, description="refine the agent's estimate with point-to-point ICP (PRANet-v2)")
+    policy: Literal["deterministic", "stoch1", "stoch2"] = Field(
+        "deterministic", description="action choice: argmax, or one of the paper's stochastic policies"
+    )
+    early_stop: bool = Field(False, description="end a step-size scale once no action has a positive predicted reward")
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="seed of the resampling and stochastic policies")
+    steps: list[Annotated[int, Field(ge=0, le=MAX_STEPS_PER_SCALE)]] | None = Field(
+        None,
+        min_length=1,
+        max_length=8,
+        description=(
+            "agent steps per step-size scale, one count per scale of the model (the shipped model: "
+            "[coarse, fine], default [20, 40]); null = the model's schedule"
+        ),
+        examples=[[20, 40]],
+    )
+    return_trajectory: bool = Field(True, description="include the agent's transform after every step")
+
+
+class TrajectoryStep(BaseModel):
+    step: int = Field(description="0-based agent step")
+    action: str = Field(description="action name, e.g. 'rot+x:10deg' or 'trans-z:0.1' (unit-frame step)")
+    transform: Matrix4 = Field(description="T_target_source after this step, input units")
+
+
+class IcpInfo(BaseModel):
+    applied: bool = Field(description="whether ICP refined the agent's estimate")
+    fitness: float | None = Field(description="fraction of source points with a target match within the ICP radius")
+    inlier_rmse: float | None = Field(description="RMS distance of the inlier matches, input units")
+
+
+class ModelInfo(BaseModel):
+    name: str | None
+    version: str | None
+    sha256: str = Field(description="sha256 over both ONNX graphs' digests")
+
+
+class RegisterResponse(BaseModel):
+    transform: Matrix4 = Field(description="T_target_source (4x4): target ≈ R @ source + t, input units")
+    rotation: list[list[float]] = Field(min_length=3, max_length=3, description="R (3x3), the rotation of transform")
+    translation: list[float] = Field(min_length=3, max_length=3, description="t (3,), input units")
+    trajectory: list[TrajectoryStep] = Field(description="the agent's steps; empty if return_trajectory is false")
+    icp: IcpInfo
+    timing_ms: dict[str, float] = Field(description="milliseconds per stage: decode, preprocess, ..., total")
+    model: ModelInfo
+    n_source: int = Field(description="points received in source")
+    n_target: int = Field(description="points received in target")
+    confidence: float | None = Field(None, description="reserved: confidence of the result")
+    status: str | None = Field(None, description="reserved: outcome of the registration")
+
+
+class HealthResponse(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class ReadyResponse(BaseModel):
+    status: Literal["ready"] = "ready"
+    model: ModelInfo
+    in_flight: int = Field(description="registrations admitted and not yet answered (this worker)")
+    max_concurrency: int
+    max_queue: int
+
+
+class ErrorResponse(BaseModel):
+    detail: str | list[dict[str, Any]] = Field(description="what went wrong: a message, or a list of field errors")
