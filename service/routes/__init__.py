@@ -1,0 +1,1 @@
+"""One router per resource: health/readiness, the model card, registration."""

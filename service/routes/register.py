@@ -1,0 +1,62 @@
+"""``POST /register``: one registration, parsed and computed in a worker thread under the admission gate."""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import anyio
+from fastapi import APIRouter, Request
+from pranet.service.icp import make_icp
+from pranet.service.registration import RequestError, run_registration
+from pranet.service.schemas import ErrorResponse, RegisterResponse
+from pranet.service.state import ServiceState
+
+router = APIRouter(tags=["registration"])
+
+_errors = {
+    413: "body or a cloud larger than the server's limits",
+    415: "Content-Type is not application/json",
+    422: "invalid request: unknown field, bad value, or a degenerate cloud (NaN/inf, < 3 points, coplanar, ...)",
+    503: "model not loaded, or too many registrations in progress (retry later)",
+    504: "the registration ran past the server's time limit",
+}
+
+
+@router.post(
+    "/register",
+    response_model=RegisterResponse,
+    summary="Register source onto target: T_target_source with target ≈ R @ source + t",
+    responses={status: {"model": ErrorResponse, "description": text} for status, text in _errors.items()},
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/json": {"schema": {"$ref": "#/components/schemas/RegisterRequest"}}},
+        }
+    },
+)
+async def register_clouds(request: Request) -> RegisterResponse:
+    """Both clouds in any (common) units; the result comes back in the same units.
+
+    Clouds are nested lists ``[[x, y, z], ...]`` or ``{"encoding": "base64-float32-le", "data": ...}``.
+    The body is parsed in a worker thread (large clouds must not block the event loop).
+    """
+    state: ServiceState = request.app.state.service
+    settings = state.settings
+    deadline = time.monotonic() + settings.request_timeout_s  # queueing counts against the deadline
+    model = state.require_model()
+    media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if media_type != "application/json":
+        raise RequestError(415, f"Content-Type must be application/json, got {media_type or 'none'!r}")
+    with state.admission.admit():
+        body = await request.body()
+        work = partial(
+            run_registration,
+            body,
+            scorer=model,
+            model_info=model.info(),
+            icp=make_icp(),
+            max_points=settings.max_points,
+            deadline=deadline,
+        )
+        return await anyio.to_thread.run_sync(work, limiter=state.admission.limiter)
