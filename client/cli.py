@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+
 from pranet.client.client import DEFAULT_URL, PranetClient, PranetError, RegistrationResult
 from pranet.client.io import SUPPORTED_SUFFIXES, PointCloudIOError, read_point_cloud, write_point_cloud
 
@@ -58,6 +59,16 @@ def _common_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds per request (default: 120)")
 
 
+def _step_counts(text: str) -> list[int]:
+    try:
+        counts = [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 20,40, got {text!r}") from None
+    if any(c < 0 for c in counts):
+        raise argparse.ArgumentTypeError(f"step counts must be >= 0, got {text!r}")
+    return counts
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pranet-client",
@@ -78,9 +89,14 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--json", action="store_true", help="print the raw JSON response instead of a summary")
     reg.add_argument("--save-aligned", type=Path, metavar="OUT", help="write the transformed source to OUT")
     reg.add_argument("--plot", type=Path, metavar="OUT", help="draw the clouds before/after and per-step curves")
-    reg.add_argument("--policy", help="action policy of the agent (server default when omitted)")
-    reg.add_argument("--seed", type=int, help="seed of the server's resampling")
-    reg.add_argument("--steps", type=int, help="number of agent steps (server default when omitted)")
+    reg.add_argument("--policy", help="agent policy: deterministic, stoch1 or stoch2 (server default: deterministic)")
+    reg.add_argument("--seed", type=int, help="seed of the server's resampling and stochastic policies")
+    reg.add_argument(
+        "--steps",
+        type=_step_counts,
+        metavar="N[,N...]",
+        help="agent steps per step-size scale, e.g. 20,40 (server default: the model's schedule; 0,0 = ICP only)",
+    )
     reg.add_argument("--early-stop", action="store_true", default=None, help="stop the agent when it converges")
 
     for name, text in (
@@ -109,8 +125,7 @@ def format_summary(result: RegistrationResult, source: Path, target: Path, n_sou
         m = result.model
         lines.append(f"model: {m.get('name')} {m.get('version')} (sha256 {str(m.get('sha256', ''))[:12]})")
     lines.append("T_target_source (target ≈ R @ source + t):")
-    with np.printoptions(precision=6, suppress=True, floatmode="fixed", sign=" "):
-        lines.extend("  " + row for row in str(T).replace("[", " ").replace("]", " ").splitlines())
+    lines.extend("  " + " ".join(f"{v:12.6f}" for v in row) for row in T)
     lines.append(f"rotation: {rotation_angle_deg(T[:3, :3]):.3f} deg, translation: {np.linalg.norm(T[:3, 3]):.6g}")
     icp = result.icp
     if icp and icp.get("applied"):
@@ -140,6 +155,7 @@ def plot_registration(
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     rng = np.random.default_rng(seed)
 
@@ -150,30 +166,40 @@ def plot_registration(
     tgt = subsample(np.asarray(target, dtype=np.float64))
     aligned = apply_transform(result.transform, src)
 
+    # One cube of axis limits for both 3-D panels, so "before" and "after" compare at a glance.
+    everything = np.concatenate([src, tgt, aligned])
+    center = (everything.min(axis=0) + everything.max(axis=0)) / 2
+    half = float((everything.max(axis=0) - everything.min(axis=0)).max()) / 2 or 1.0
+
     fig = Figure(figsize=(12, 9), layout="constrained")
     FigureCanvasAgg(fig)
-    for i, (title, moved) in enumerate((("before (input)", src), ("after (registered)", aligned))):
+    for i, (title, moved) in enumerate((("before (input)", src), ("after: T_target_source applied", aligned))):
         ax = fig.add_subplot(2, 2, i + 1, projection="3d")
         ax.scatter(*tgt.T, s=1, c="tab:blue", label="target", depthshade=False)
         ax.scatter(*moved.T, s=1, c="tab:orange", label="source", depthshade=False)
         ax.set_title(title)
+        ax.set(xlim=(center[0] - half, center[0] + half), ylim=(center[1] - half, center[1] + half))
+        ax.set_zlim(center[2] - half, center[2] + half)
         ax.set_box_aspect((1, 1, 1))
+        ax.tick_params(labelsize=7)
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+            axis.set_major_locator(MaxNLocator(4))
         ax.legend(loc="upper right", markerscale=6)
 
     final = result.transform
-    steps = [0] + [s.step for s in result.trajectory]
+    steps = list(range(len(result.trajectory) + 1))  # 0 = the input, i = after the agent's i-th step
     transforms = [np.eye(4)] + [s.transform for s in result.trajectory]
     angles = [rotation_angle_deg(final[:3, :3].T @ T[:3, :3]) for T in transforms]
     offsets = [float(np.linalg.norm(T[:3, 3] - final[:3, 3])) for T in transforms]
     for j, (values, label) in enumerate(
-        ((angles, "rotation to final (deg)"), (offsets, "translation to final (cloud units)"))
+        ((angles, "rotation to the final transform (deg)"), (offsets, "translation to the final transform"))
     ):
         ax = fig.add_subplot(2, 2, 3 + j)
         if result.trajectory:
             ax.plot(steps, values, marker=".", lw=1)
         else:
             ax.text(0.5, 0.5, "no trajectory in the response", ha="center", va="center", transform=ax.transAxes)
-        ax.set_xlabel("agent step (0 = input)")
+        ax.set_xlabel("agent steps taken (0 = input)")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
     icp = result.icp or {}

@@ -20,6 +20,7 @@ from typing import Any
 import httpx
 import numpy as np
 import numpy.typing as npt
+
 from pranet.client.io import read_point_cloud
 
 Array = npt.NDArray[np.float64]

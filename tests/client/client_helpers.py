@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import os
+import shutil
 import socket
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 
 def free_port() -> int:
@@ -39,3 +44,21 @@ def canned_response(T: np.ndarray, steps: int = 3) -> dict[str, Any]:
         "timing_ms": {"preprocess": 1.0, "agent_steps": 2.0, "icp": 3.0, "total": 6.0},
         "model": {"name": "fake", "version": "0", "sha256": "ab" * 32},
     }
+
+
+def console_script(name: str) -> str:
+    """The console script ``name`` of this interpreter's environment (else the one on PATH)."""
+    beside = Path(sys.executable).parent / name
+    if beside.exists():
+        return str(beside)
+    found = shutil.which(name)
+    if found is None:
+        pytest.fail(f"console script {name} not installed: pip install -e '.[dev]'")
+    return found
+
+
+def clean_env(**extra: str) -> dict[str, str]:
+    """The test process's environment without PRANET_* settings (so the developer's shell cannot leak in)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PRANET_") or k == "PRANET_DATA_DIR"}
+    env.update(extra)
+    return env

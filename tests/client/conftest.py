@@ -4,10 +4,7 @@
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -17,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from client_helpers import free_port
+from client_helpers import clean_env, console_script, free_port
 
 SERVER_START_TIMEOUT_S = 120.0
 
@@ -68,24 +65,6 @@ def fake_service() -> Iterator[FakeService]:
     finally:
         server.shutdown()
         server.server_close()
-
-
-def console_script(name: str) -> str:
-    """The console script ``name`` of this interpreter's environment (else the one on PATH)."""
-    beside = Path(sys.executable).parent / name
-    if beside.exists():
-        return str(beside)
-    found = shutil.which(name)
-    if found is None:
-        pytest.fail(f"console script {name} not installed: pip install -e '.[dev]'")
-    return found
-
-
-def clean_env(**extra: str) -> dict[str, str]:
-    """The test process's environment without PRANET_* settings (so the developer's shell cannot leak in)."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PRANET_") or k == "PRANET_DATA_DIR"}
-    env.update(extra)
-    return env
 
 
 @dataclass

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from client_helpers import canned_response, free_port, make_transform
 from numpy.testing import assert_allclose, assert_array_equal
+
 from pranet.client import (
     PranetClient,
     PranetConnectionError,

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
+
 from pranet.client.io import PointCloudIOError, read_point_cloud, write_point_cloud
 
 

@@ -1,0 +1,157 @@
+"""pranet-client: output of each option against a canned service, and one-line errors with a non-zero exit."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from client_helpers import canned_response, clean_env, console_script, free_port, make_transform
+from numpy.testing import assert_allclose
+
+from pranet.client.cli import main
+from pranet.client.io import read_point_cloud, write_point_cloud
+
+T_KNOWN = make_transform(20.0, (0.0, 0.0, 1.0), (0.5, 0.0, -0.25))
+
+
+@pytest.fixture
+def clouds(tmp_path: Path) -> tuple[Path, Path]:
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(300, 3))
+    target = source @ T_KNOWN[:3, :3].T + T_KNOWN[:3, 3]
+    return write_point_cloud(tmp_path / "a.ply", source), write_point_cloud(tmp_path / "b.xyz", target)
+
+
+def run_cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    cmd = [console_script("pranet-client"), *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=clean_env())
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess[str], *fragments: str) -> None:
+    assert proc.returncode != 0
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith("error: ")
+    assert "Traceback" not in proc.stderr
+    for fragment in fragments:
+        assert fragment in lines[0]
+
+
+# --- error paths, as a user meets them: the installed console script in a subprocess ---
+
+
+def test_unreachable_server_is_one_line(clouds: tuple[Path, Path]) -> None:
+    url = f"http://127.0.0.1:{free_port()}"
+    proc = run_cli("register", *clouds, "--url", url)
+    assert_one_line_error(proc, "cannot reach the service", url)
+    assert proc.stdout == ""
+
+
+def test_health_unreachable() -> None:
+    assert_one_line_error(run_cli("health", "--url", f"http://127.0.0.1:{free_port()}"), "cannot reach")
+
+
+def test_missing_file_is_one_line(tmp_path: Path, clouds: tuple[Path, Path]) -> None:
+    missing = tmp_path / "nope.ply"
+    proc = run_cli("register", missing, clouds[1], "--url", "http://127.0.0.1:1")
+    assert_one_line_error(proc, str(missing), "no such")
+
+
+def test_unreadable_file_is_one_line(tmp_path: Path, clouds: tuple[Path, Path]) -> None:
+    bad = tmp_path / "bad.ply"
+    bad.write_text("this is not a ply file\n")
+    assert_one_line_error(run_cli("register", clouds[0], bad, "--url", "http://127.0.0.1:1"), "not a valid PLY")
+
+
+def test_bad_output_path_fails_before_the_request(tmp_path: Path, clouds: tuple[Path, Path]) -> None:
+    proc = run_cli("register", *clouds, "--url", "http://127.0.0.1:1", "--plot", tmp_path / "no" / "plot.png")
+    assert_one_line_error(proc, "does not exist")
+    proc = run_cli("register", *clouds, "--url", "http://127.0.0.1:1", "--save-aligned", tmp_path / "out.obj")
+    assert_one_line_error(proc, "--save-aligned must end in one of")
+
+
+def test_bad_arguments_exit_2(clouds: tuple[Path, Path]) -> None:
+    assert run_cli("register", clouds[0]).returncode == 2
+    assert run_cli("register", *clouds, "--steps", "a,b").returncode == 2
+
+
+# --- output, in-process against a canned service on loopback ---
+
+
+def test_summary(fake_service, clouds, capsys: pytest.CaptureFixture[str]) -> None:
+    fake_service.routes[("POST", "/register")] = lambda body: (200, canned_response(T_KNOWN))
+    assert main(["register", *map(str, clouds), "--url", fake_service.url]) == 0
+    out = capsys.readouterr().out
+    assert "T_target_source (target ≈ R @ source + t):" in out
+    rows = [line.split() for line in out.splitlines() if line.startswith("  ")]
+    assert_allclose(np.array(rows, dtype=float), T_KNOWN, atol=1e-6)
+    assert "rotation: 20.000 deg" in out
+    assert "ICP: fitness 0.9000, inlier_rmse 0.001" in out
+    assert "timing (ms):" in out and "total 6.0" in out
+    assert "model: fake 0" in out
+    sent = fake_service.requests[-1]["json"]
+    assert sent["icp"] is True and "steps" not in sent and "policy" not in sent
+    assert_allclose(sent["source"], read_point_cloud(clouds[0]))
+
+
+def test_options_are_sent(fake_service, clouds) -> None:
+    fake_service.routes[("POST", "/register")] = lambda body: (200, canned_response(T_KNOWN))
+    args = ["register", *map(str, clouds), "--url", fake_service.url, "--no-icp", "--steps", "5,10"]
+    args += ["--policy", "stoch1", "--seed", "7", "--early-stop", "--api-key", "k3y"]
+    assert main(args) == 0
+    request = fake_service.requests[-1]
+    assert request["headers"]["Authorization"] == "Bearer k3y"
+    assert {k: request["json"][k] for k in ("icp", "steps", "policy", "seed", "early_stop")} == {
+        "icp": False,
+        "steps": [5, 10],
+        "policy": "stoch1",
+        "seed": 7,
+        "early_stop": True,
+    }
+
+
+def test_json_output_is_the_raw_response(fake_service, clouds, capsys) -> None:
+    body = {**canned_response(T_KNOWN), "confidence": 0.5, "status": "converged"}
+    fake_service.routes[("POST", "/register")] = lambda _: (200, body)
+    assert main(["register", *map(str, clouds), "--url", fake_service.url, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == body
+
+
+def test_confidence_and_status_are_printed(fake_service, clouds, capsys) -> None:
+    body = {**canned_response(T_KNOWN), "confidence": 0.5, "status": "converged"}
+    fake_service.routes[("POST", "/register")] = lambda _: (200, body)
+    assert main(["register", *map(str, clouds), "--url", fake_service.url]) == 0
+    assert "status: converged, confidence: 0.500" in capsys.readouterr().out
+
+
+def test_save_aligned_and_plot(fake_service, clouds, tmp_path: Path) -> None:
+    fake_service.routes[("POST", "/register")] = lambda _: (200, canned_response(T_KNOWN, steps=5))
+    aligned, plot = tmp_path / "aligned.pcd", tmp_path / "plot.png"
+    args = ["register", *map(str, clouds), "--url", fake_service.url, "--save-aligned", str(aligned)]
+    assert main([*args, "--plot", str(plot)]) == 0
+    assert_allclose(read_point_cloud(aligned), read_point_cloud(clouds[1]), atol=1e-5)
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and plot.stat().st_size > 10_000
+    assert fake_service.requests[-1]["json"]["return_trajectory"] is True
+
+
+def test_http_error_is_one_line(fake_service, clouds, capsys) -> None:
+    fake_service.routes[("POST", "/register")] = lambda _: (401, {"detail": "missing or invalid API key"})
+    assert main(["register", *map(str, clouds), "--url", fake_service.url]) == 1
+    captured = capsys.readouterr()
+    assert captured.err == "error: HTTP 401 from /register: missing or invalid API key\n"
+    assert captured.out == ""
+
+
+def test_health_ready_model(fake_service, capsys) -> None:
+    fake_service.routes[("GET", "/health")] = lambda _: (200, {"status": "ok"})
+    fake_service.routes[("GET", "/ready")] = lambda _: (503, {"detail": "model not loaded"})
+    fake_service.routes[("GET", "/model")] = lambda _: (200, {"name": "fake"})
+    assert main(["health", "--url", fake_service.url]) == 0
+    assert json.loads(capsys.readouterr().out) == {"status": "ok"}
+    assert main(["ready", "--url", fake_service.url]) == 1
+    assert "model not loaded" in capsys.readouterr().err
+    assert main(["model", "--url", fake_service.url]) == 0
+    assert json.loads(capsys.readouterr().out) == {"name": "fake"}
