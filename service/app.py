@@ -16,13 +16,14 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
+from starlette.middleware.cors import CORSMiddleware
+
 from pranet.service.middleware import ApiKeyMiddleware, BodySizeLimitMiddleware
 from pranet.service.registration import RequestError
 from pranet.service.routes import health, model, register
 from pranet.service.schemas import ENCODING, RegisterRequest
 from pranet.service.settings import Settings
 from pranet.service.state import ServiceState
-from starlette.middleware.cors import CORSMiddleware
 
 log = logging.getLogger("pranet.service")
 OPEN_PATHS = ("/health",)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from pranet.core.pipeline import IcpResult
 from pranet.core.se3 import Array
 

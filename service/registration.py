@@ -10,6 +10,8 @@ import binascii
 import time
 
 import numpy as np
+from pydantic import ValidationError
+
 from pranet.core.agent import AgentTimeout
 from pranet.core.pipeline import IcpFn, Registration, Scorer, register
 from pranet.core.preprocess import DegenerateCloudError
@@ -22,7 +24,6 @@ from pranet.service.schemas import (
     RegisterResponse,
     TrajectoryStep,
 )
-from pydantic import ValidationError
 
 
 class RequestError(Exception):

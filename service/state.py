@@ -8,6 +8,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import anyio
+
 from pranet.model.runtime import ModelLoadError, RewardModel, default_model_dir
 from pranet.service.registration import RequestError
 from pranet.service.settings import Settings

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Request
+
 from pranet.service.schemas import ErrorResponse, HealthResponse, ModelInfo, ReadyResponse
 from pranet.service.state import ServiceState
 

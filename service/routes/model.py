@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, Request
+
 from pranet.service.schemas import ErrorResponse
 from pranet.service.state import ServiceState
 

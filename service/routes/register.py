@@ -7,6 +7,7 @@ from functools import partial
 
 import anyio
 from fastapi import APIRouter, Request
+
 from pranet.service.icp import make_icp
 from pranet.service.registration import RequestError, run_registration
 from pranet.service.schemas import ErrorResponse, RegisterResponse
