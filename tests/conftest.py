@@ -30,3 +30,34 @@ def scans_dir() -> Path:
     if not (d / "bun000.ply").exists():
         pytest.skip(f"scans not found under {d} (set PRANET_DATA_DIR)")
     return d
+
+
+# --- A real HTTP service for the tests that talk to it (tests/live_server.py starts it) -------------
+
+# Small limits keep the limit tests cheap; everything else is the service's default.
+LIVE_SERVER_SETTINGS = {
+    "PRANET_THREADS": "1",
+    "PRANET_MAX_POINTS": "20000",
+    "PRANET_MAX_BODY_BYTES": "2000000",
+    "PRANET_MAX_CONCURRENCY": "2",
+    "PRANET_MAX_QUEUE": "16",
+    "PRANET_LOG_LEVEL": "warning",
+}
+
+
+@pytest.fixture(scope="session")
+def live_server(tmp_path_factory: pytest.TempPathFactory):
+    """``pranet-serve`` (shipped model, one worker, ``LIVE_SERVER_SETTINGS``) on a free loopback port."""
+    from live_server import start_live_server
+
+    server = start_live_server(tmp_path_factory.mktemp("live_server"), LIVE_SERVER_SETTINGS)
+    try:
+        yield server
+    finally:
+        server.stop()
+
+
+@pytest.fixture(scope="session")
+def server_url(live_server) -> str:
+    """Base URL of the shared live service, e.g. ``http://127.0.0.1:43121``."""
+    return live_server.url

@@ -1,0 +1,39 @@
+"""Helpers of the service tests (imported by name: pytest puts this folder on sys.path)."""
+
+from __future__ import annotations
+
+import base64
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# Agent steps for tests that check accuracy: a couple of fine steps exercise the agent without letting an
+# untrained placeholder model walk away from the answer; ICP then converges from there.
+FEW_STEPS = [0, 2]
+
+
+def synthetic_pair(n: int = 600, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An anisotropic random cloud and its copy moved by a known 5° rotation and small translation.
+
+    Returns ``(source (n, 3), target (n, 3), T_target_source (4, 4))`` with ``target = R @ source + t``,
+    all float32-representable (so the list and base64 encodings carry the same numbers).
+    """
+    rng = np.random.default_rng(seed)
+    source = (rng.normal(size=(n, 3)) * [1.0, 0.5, 0.25]).astype(np.float32).astype(np.float64)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.deg2rad(5.0) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)).as_matrix()
+    T[:3, 3] = [0.05, -0.03, 0.02]
+    target = (source @ T[:3, :3].T + T[:3, 3]).astype(np.float32).astype(np.float64)
+    return source, target, T
+
+
+def b64(points: Any) -> dict[str, str]:
+    """The compact encoding of ``points (N, 3)``."""
+    raw = np.asarray(points, dtype="<f4").tobytes()
+    return {"encoding": "base64-float32-le", "data": base64.b64encode(raw).decode()}
+
+
+def rotation_error_deg(R: Any, R_gt: Any) -> float:
+    cos = (np.trace(np.asarray(R_gt).T @ np.asarray(R)) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
