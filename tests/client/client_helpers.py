@@ -1,23 +1,16 @@
-"""Helpers shared by the client tests (imported by name: pytest puts this folder on sys.path)."""
+"""Helpers shared by the client tests (imported by name: pytest puts this folder and ``tests/`` on sys.path)."""
 
 from __future__ import annotations
 
-import os
-import shutil
-import socket
-import sys
+import subprocess
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from live_server import LiveServer, clean_env, console_script, start_live_server
 
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+READY_TIMEOUT_S = 120.0
 
 
 def make_transform(angle_deg: float, axis: tuple[float, float, float], translation: tuple[float, float, float]):
@@ -46,19 +39,27 @@ def canned_response(T: np.ndarray, steps: int = 3) -> dict[str, Any]:
     }
 
 
-def console_script(name: str) -> str:
-    """The console script ``name`` of this interpreter's environment (else the one on PATH)."""
-    beside = Path(sys.executable).parent / name
-    if beside.exists():
-        return str(beside)
-    found = shutil.which(name)
-    if found is None:
-        pytest.fail(f"console script {name} not installed: pip install -e '.[dev]'")
-    return found
+def run_console(name: str, *args: str | Path, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """Run console script ``name`` with ``args`` in a clean environment (plus ``env``); capture text output."""
+    cmd = [console_script(name), *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=180, env=clean_env(env))
 
 
-def clean_env(**extra: str) -> dict[str, str]:
-    """The test process's environment without PRANET_* settings (so the developer's shell cannot leak in)."""
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PRANET_") or k == "PRANET_DATA_DIR"}
-    env.update(extra)
-    return env
+def start_server(log_dir: Path, api_key: str | None = None) -> LiveServer:
+    """``pranet-serve`` with the shipped model and default limits (clouds of 40k points pass), waited for ``/ready``.
+
+    Unlike the shared ``live_server`` fixture, whose small limits suit the limit tests, nothing is lowered.
+    """
+    from pranet.client import PranetClient, PranetError
+
+    settings = {"PRANET_THREADS": "1", "PRANET_LOG_LEVEL": "warning"}
+    if api_key:
+        settings["PRANET_API_KEY"] = api_key
+    server = start_live_server(log_dir, settings)
+    with PranetClient(server.url, api_key=api_key, timeout=5.0) as client:
+        try:
+            client.wait_ready(timeout=READY_TIMEOUT_S)
+        except PranetError as e:
+            server.stop()
+            pytest.fail(f"pranet-serve not ready: {e}\n{server.output()[-3000:]}")
+    return server

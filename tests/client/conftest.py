@@ -4,19 +4,15 @@
 from __future__ import annotations
 
 import json
-import subprocess
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from pathlib import Path
 from typing import Any
 
 import pytest
-from client_helpers import clean_env, console_script, free_port
-
-SERVER_START_TIMEOUT_S = 120.0
+from client_helpers import start_server
+from live_server import LiveServer
 
 
 @dataclass
@@ -67,55 +63,11 @@ def fake_service() -> Iterator[FakeService]:
         server.server_close()
 
 
-@dataclass
-class Server:
-    url: str
-    process: subprocess.Popen
-    log: Path
-
-
-def start_server(tmp_dir: Path, api_key: str | None = None) -> Server:
-    """Start ``pranet-serve`` (shipped model, one worker) on a free loopback port; wait for ``/ready``."""
-    from pranet.client import PranetClient, PranetError
-
-    port = free_port()
-    log = tmp_dir / f"pranet-serve-{port}.log"
-    env = clean_env(PRANET_THREADS="1")
-    if api_key:
-        env["PRANET_API_KEY"] = api_key
-    cmd = [console_script("pranet-serve"), "--host", "127.0.0.1", "--port", str(port), "--workers", "1"]
-    with open(log, "wb") as out:
-        process = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
-    server = Server(f"http://127.0.0.1:{port}", process, log)
-    deadline = time.monotonic() + SERVER_START_TIMEOUT_S
-    with PranetClient(server.url, api_key=api_key, timeout=5.0) as client:
-        while True:
-            if process.poll() is not None:
-                pytest.fail(f"pranet-serve exited with {process.returncode}:\n{log.read_text()[-3000:]}")
-            try:
-                client.ready()
-                return server
-            except PranetError:
-                if time.monotonic() > deadline:
-                    stop_server(server)
-                    pytest.fail(f"pranet-serve not ready in {SERVER_START_TIMEOUT_S} s:\n{log.read_text()[-3000:]}")
-            time.sleep(0.25)
-
-
-def stop_server(server: Server) -> None:
-    server.process.terminate()
-    try:
-        server.process.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        server.process.kill()
-        server.process.wait(timeout=10)
-
-
 @pytest.fixture(scope="session")
-def pranet_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+def pranet_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
     """A real ``pranet-serve`` with the shipped model, shared by the end-to-end tests."""
     server = start_server(tmp_path_factory.mktemp("server"))
     try:
         yield server
     finally:
-        stop_server(server)
+        server.stop()

@@ -10,7 +10,8 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from client_helpers import canned_response, free_port, make_transform
+from client_helpers import canned_response, make_transform
+from live_server import free_port
 from numpy.testing import assert_allclose, assert_array_equal
 
 from pranet.client import (

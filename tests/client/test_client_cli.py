@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from client_helpers import canned_response, clean_env, console_script, free_port, make_transform
+from client_helpers import canned_response, make_transform, run_console
+from live_server import free_port
 from numpy.testing import assert_allclose
 
 from pranet.client.cli import main
@@ -26,8 +27,7 @@ def clouds(tmp_path: Path) -> tuple[Path, Path]:
 
 
 def run_cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
-    cmd = [console_script("pranet-client"), *map(str, args)]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=120, env=clean_env())
+    return run_console("pranet-client", *args)
 
 
 def assert_one_line_error(proc: subprocess.CompletedProcess[str], *fragments: str) -> None:
