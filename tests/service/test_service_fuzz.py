@@ -1,0 +1,91 @@
+"""Property-based fuzzing of the live service from its own /openapi.json (schemathesis + hypothesis).
+
+Every generated request, valid or deliberately invalid, must get an answer that is not a 5xx and
+that conforms to the documented statuses and schemas. ``scripts/fuzz.py`` runs the same test with
+more cases (``PRANET_FUZZ_EXAMPLES``) or against another server (``PRANET_FUZZ_URL``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import Counter
+from typing import Any
+
+import pytest
+
+schemathesis = pytest.importorskip("schemathesis")
+from hypothesis import HealthCheck, Phase, given, settings  # noqa: E402 - after the importorskip
+from schemathesis import GenerationMode  # noqa: E402
+from schemathesis.checks import not_a_server_error  # noqa: E402
+from schemathesis.specs.openapi.checks import (  # noqa: E402
+    content_type_conformance,
+    response_schema_conformance,
+    status_code_conformance,
+)
+
+pytestmark = pytest.mark.slow
+
+EXAMPLES = int(os.environ.get("PRANET_FUZZ_EXAMPLES", "1000"))  # /register cases; 60 % valid by the schema
+CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance]
+FUZZ_SETTINGS = settings(
+    deadline=None,
+    database=None,
+    derandomize=os.environ.get("PRANET_FUZZ_RANDOM") != "1",
+    phases=[Phase.explicit, Phase.generate],
+    suppress_health_check=list(HealthCheck),
+)
+
+
+@pytest.fixture(scope="module")
+def api_schema(request: pytest.FixtureRequest) -> Any:
+    url = os.environ.get("PRANET_FUZZ_URL") or request.getfixturevalue("server_url")
+    key = os.environ.get("PRANET_FUZZ_API_KEY")
+    headers = {"Authorization": f"Bearer {key}"} if key else {}
+    return schemathesis.openapi.from_url(f"{url}/openapi.json", headers=headers), url, headers
+
+
+def _fewer_steps(case: Any) -> None:
+    """Bound the agent work of a valid body (the schema allows 2 x 200 steps, seconds each on a busy CPU)."""
+    body = case.body
+    if isinstance(body, dict) and "source" in body and "target" in body:
+        steps = body.get("steps")
+        body["steps"] = [min(s, 2) for s in steps] if isinstance(steps, list) and steps else [1, 1]
+
+
+def _fuzz(schema: Any, url: str, headers: dict, path: str, method: str, mode: GenerationMode, n: int) -> Counter:
+    import requests
+
+    statuses: Counter = Counter()
+    operation = schema[path][method]
+
+    with requests.Session() as session:
+
+        @settings(FUZZ_SETTINGS, max_examples=n)
+        @given(case=operation.as_strategy(generation_mode=mode))
+        def run(case: Any) -> None:
+            if mode is GenerationMode.POSITIVE:
+                _fewer_steps(case)  # a negative case must stay invalid: leave it as generated
+            response = case.call(base_url=url, session=session, headers=headers, timeout=120)
+            checks = CHECKS if mode is GenerationMode.POSITIVE else [not_a_server_error]
+            case.validate_response(response, checks=checks, headers=headers)
+            statuses[response.status_code] += 1
+
+        run()
+    return statuses
+
+
+def test_fuzz_register(api_schema: Any) -> None:
+    schema, url, headers = api_schema
+    valid = _fuzz(schema, url, headers, "/register", "POST", GenerationMode.POSITIVE, int(EXAMPLES * 0.6))
+    invalid = _fuzz(schema, url, headers, "/register", "POST", GenerationMode.NEGATIVE, int(EXAMPLES * 0.4))
+    print(f"\n/register statuses: valid-by-schema {dict(valid)}, invalid-by-schema {dict(invalid)}")
+    assert sum(valid.values()) + sum(invalid.values()) >= EXAMPLES * 0.95  # hypothesis may drop a few duplicates
+    assert valid[200] > 0, "no generated request was registered: the fuzzing never reached the pipeline"
+    assert all(400 <= status < 500 for status in invalid), invalid
+
+
+@pytest.mark.parametrize(("path", "method"), [("/health", "GET"), ("/ready", "GET"), ("/model", "GET")])
+def test_fuzz_read_routes(api_schema: Any, path: str, method: str) -> None:
+    schema, url, headers = api_schema
+    statuses = _fuzz(schema, url, headers, path, method, GenerationMode.POSITIVE, 20)
+    assert set(statuses) == {200}
