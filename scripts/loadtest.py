@@ -1,0 +1,194 @@
+"""Bounded loopback load test of the registration service: ``python scripts/loadtest.py --duration 30``.
+
+Starts ``pranet-serve`` on a free loopback port (or uses ``--url`` with the server's ``--pid``),
+runs ``--clients`` concurrent clients posting ``POST /register`` for ``--duration`` seconds (at most
+120; the run stops by itself), then prints the latency percentiles, the status counts, the error
+count and the server's resident memory before and after (Linux /proc; workers included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+MAX_DURATION_S = 120.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def rss_mib(pid: int) -> float | None:
+    """Resident memory of ``pid`` and its descendants (uvicorn workers), MiB; None off Linux."""
+    total_kib, todo, seen = 0, [pid], set()
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total_kib += int(line.split()[1])
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            if p == pid:
+                return None
+    return total_kib / 1024.0
+
+
+def start_server(workers: int, threads: int, env_extra: dict[str, str]) -> tuple[subprocess.Popen, str]:
+    port = free_port()
+    exe = Path(sys.executable).parent / "pranet-serve"
+    cmd = [str(exe) if exe.exists() else (shutil.which("pranet-serve") or "pranet-serve")]
+    cmd += ["--host", "127.0.0.1", "--port", str(port), "--workers", str(workers), "--threads", str(threads)]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PRANET_")}
+    env.update({"PRANET_LOG_LEVEL": "warning", **env_extra})
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise SystemExit(f"pranet-serve exited with {proc.returncode}: {proc.stderr.read() if proc.stderr else ''}")
+        try:
+            if httpx.get(f"{url}/health", timeout=2).status_code == 200:
+                return proc, url
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    proc.kill()
+    raise SystemExit("pranet-serve did not come up in 120 s")
+
+
+def make_body(n_points: int, steps: list[int] | None, icp: bool, encoding: str, seed: int) -> bytes:
+    """A request registering an anisotropic random cloud onto a copy moved by 5° and a small shift."""
+    import json
+
+    rng = np.random.default_rng(seed)
+    source = (rng.normal(size=(n_points, 3)) * [1.0, 0.5, 0.25]).astype(np.float32)
+    angle = np.deg2rad(5.0)
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    target = (source @ R.T + [0.05, -0.03, 0.02]).astype(np.float32)
+
+    def cloud(points: np.ndarray):
+        if encoding == "list":
+            return points.tolist()
+        return {"encoding": "base64-float32-le", "data": base64.b64encode(points.astype("<f4").tobytes()).decode()}
+
+    body: dict = {"source": cloud(source), "target": cloud(target), "icp": icp, "return_trajectory": False}
+    if steps is not None:
+        body["steps"] = steps
+    return json.dumps(body).encode()
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--url", help="a running service (default: start pranet-serve on loopback)")
+    p.add_argument("--pid", type=int, help="pid of that service, for its memory (with --url)")
+    p.add_argument("--api-key", help="bearer key of that service")
+    p.add_argument("--clients", type=int, default=4, help="concurrent clients (default 4)")
+    p.add_argument("--duration", type=float, default=30.0, help=f"seconds of load (default 30, max {MAX_DURATION_S:g})")
+    p.add_argument("--points", type=int, default=2000, help="points per cloud (default 2000)")
+    p.add_argument("--steps", type=int, nargs="+", help="agent steps per scale (default: the model's schedule)")
+    p.add_argument("--no-icp", action="store_true", help="agent only")
+    p.add_argument("--encoding", choices=["base64", "list"], default="base64")
+    p.add_argument("--workers", type=int, default=1, help="workers of the started server")
+    p.add_argument("--threads", type=int, default=1, help="onnxruntime threads per worker of the started server")
+    p.add_argument("--max-concurrency", type=int, help="PRANET_MAX_CONCURRENCY of the started server")
+    p.add_argument("--max-queue", type=int, help="PRANET_MAX_QUEUE of the started server")
+    args = p.parse_args()
+    duration = min(max(args.duration, 1.0), MAX_DURATION_S)
+
+    proc = None
+    if args.url:
+        url, pid = args.url.rstrip("/"), args.pid
+    else:
+        extra = {}
+        if args.max_concurrency:
+            extra["PRANET_MAX_CONCURRENCY"] = str(args.max_concurrency)
+        if args.max_queue is not None:
+            extra["PRANET_MAX_QUEUE"] = str(args.max_queue)
+        proc, url = start_server(args.workers, args.threads, extra)
+        pid = proc.pid
+    headers = {"content-type": "application/json"}
+    if args.api_key:
+        headers["Authorization"] = f"Bearer {args.api_key}"
+    body = make_body(args.points, args.steps, not args.no_icp, args.encoding, seed=0)
+
+    latencies: list[float] = []
+    statuses: Counter = Counter()
+    errors: Counter = Counter()
+    lock = threading.Lock()
+    try:
+        with httpx.Client(base_url=url, headers=headers, timeout=60) as warm:  # first request pays lazy imports
+            warm.post("/register", content=body)
+        rss_before = rss_mib(pid) if pid else None
+        stop_at = time.monotonic() + duration
+
+        def client() -> None:
+            with httpx.Client(base_url=url, headers=headers, timeout=60) as http:
+                while time.monotonic() < stop_at:
+                    t0 = time.perf_counter()
+                    try:
+                        status = http.post("/register", content=body).status_code
+                    except httpx.HTTPError as e:
+                        status = None
+                        with lock:
+                            errors[type(e).__name__] += 1
+                    with lock:
+                        if status is not None:
+                            statuses[status] += 1
+                            if status == 200:
+                                latencies.append(time.perf_counter() - t0)
+
+        started = time.monotonic()
+        threads = [threading.Thread(target=client, daemon=True) for _ in range(args.clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=duration + 90)
+        elapsed = time.monotonic() - started
+        rss_after = rss_mib(pid) if pid else None
+    finally:
+        if proc is not None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+
+    n = sum(statuses.values())
+    failed = sum(c for s, c in statuses.items() if s != 200) + sum(errors.values())
+    print(f"server        {url}  ({args.clients} clients, {elapsed:.1f} s, {args.points} points, {args.encoding})")
+    print(f"requests      {n} answered, {n / elapsed:.2f}/s; statuses {dict(sorted(statuses.items()))}")
+    if latencies:
+        ms = np.array(latencies) * 1e3
+        p50, p95 = np.percentile(ms, [50, 95])
+        print(f"latency 200   p50 {p50:.1f} ms  p95 {p95:.1f} ms  max {ms.max():.1f} ms")
+    print(f"errors        {failed} (non-200 answers {failed - sum(errors.values())}, transport {dict(errors)})")
+    if rss_before is not None and rss_after is not None:
+        growth = rss_after - rss_before
+        print(f"server RSS    before {rss_before:.1f} MiB  after {rss_after:.1f} MiB  ({growth:+.1f} MiB)")
+    else:
+        print("server RSS    unknown (give --pid of the server, on Linux)")
+    return 0 if failed == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
