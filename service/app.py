@@ -6,7 +6,6 @@ Run it with ``pranet-serve`` (which verifies the model first), or any ASGI serve
 
 from __future__ import annotations
 
-import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from importlib.metadata import PackageNotFoundError, version
@@ -25,7 +24,6 @@ from pranet.service.schemas import ENCODING, RegisterRequest
 from pranet.service.settings import Settings
 from pranet.service.state import ServiceState
 
-log = logging.getLogger("pranet.service")
 OPEN_PATHS = ("/health",)
 
 DESCRIPTION = f"""
@@ -61,8 +59,8 @@ async def _validation_error(_: Request, exc: Exception) -> JSONResponse:
     return _error(422, errors)
 
 
-async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
-    log.exception("unexpected error on %s %s", request.method, request.url.path, exc_info=exc)
+async def _unexpected_error(_: Request, exc: Exception) -> JSONResponse:
+    # Starlette re-raises after this answer, so the server logs the traceback; the client gets none.
     return _error(500, "internal server error")
 
 

@@ -88,9 +88,15 @@ def run_registration(
     icp: IcpFn | None,
     max_points: int,
     deadline: float,
+    admitted_at: float | None = None,
 ) -> RegisterResponse:
-    """Parse ``body`` (JSON bytes), register, and build the response. ``deadline``: ``time.monotonic()`` s."""
+    """Parse ``body`` (JSON bytes), register, and build the response.
+
+    ``deadline``: ``time.monotonic()`` seconds; ``admitted_at``: ``time.perf_counter()`` when the request
+    was admitted (its wait for a free slot is reported as ``timing_ms["queue"]``).
+    """
     t0 = time.perf_counter()
+    queue_ms = (t0 - admitted_at) * 1e3 if admitted_at is not None else 0.0
     # 1. Parse and decode both clouds.
     req = parse_request(body)
     source = decode_cloud(req.source, "source", max_points)
@@ -125,7 +131,7 @@ def run_registration(
         raise RequestError(504, f"{e} (server limit; ask for fewer steps or a smaller cloud)") from None
     # 3. Build the response, in the input units.
     T = result.transform
-    timing = {"decode": decode_ms, **result.timing_ms}
+    timing = {"queue": queue_ms, "decode": decode_ms, **result.timing_ms}
     timing["total"] = (time.perf_counter() - t0) * 1e3
     return RegisterResponse(
         transform=_matrix(T),

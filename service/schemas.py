@@ -112,7 +112,10 @@ class RegisterResponse(BaseModel):
     translation: list[float] = Field(min_length=3, max_length=3, description="t (3,), input units")
     trajectory: list[TrajectoryStep] = Field(description="the agent's steps; empty if return_trajectory is false")
     icp: IcpInfo
-    timing_ms: dict[str, float] = Field(description="milliseconds per stage: decode, preprocess, ..., total")
+    timing_ms: dict[str, float] = Field(
+        description="milliseconds per stage: queue (waiting for a slot), decode, preprocess, target_embedding, "
+        "agent_steps, icp; total (decode to response, queue excluded)"
+    )
     model: ModelInfo
     n_source: int = Field(description="points received in source")
     n_target: int = Field(description="points received in target")

@@ -59,5 +59,6 @@ async def register_clouds(request: Request) -> RegisterResponse:
             icp=make_icp(),
             max_points=settings.max_points,
             deadline=deadline,
+            admitted_at=time.perf_counter(),
         )
         return await anyio.to_thread.run_sync(work, limiter=state.admission.limiter)

@@ -95,7 +95,7 @@ def test_register_recovers_a_known_transform(http: httpx.Client) -> None:
     assert body["n_source"] == body["n_target"] == len(source)
     assert [s["step"] for s in body["trajectory"]] == list(range(sum(FEW_STEPS)))
     assert all(np.array(s["transform"]).shape == (4, 4) and s["action"] for s in body["trajectory"])
-    assert {"decode", "preprocess", "agent_steps", "icp", "total"} <= set(body["timing_ms"])
+    assert {"queue", "decode", "preprocess", "agent_steps", "icp", "total"} <= set(body["timing_ms"])
     assert body["model"] == http.get("/ready").json()["model"]
 
 
@@ -222,3 +222,21 @@ def test_cors_when_origins_are_configured() -> None:
         assert preflight.headers["access-control-allow-origin"] == "https://viewer.example"
         r = client.get("/health", headers={"Origin": "https://other.example"})
         assert "access-control-allow-origin" not in r.headers
+
+
+def test_unexpected_errors_are_a_generic_500_without_traceback() -> None:
+    from fastapi.testclient import TestClient
+
+    from pranet.service.app import create_app
+    from pranet.service.settings import Settings
+
+    app = create_app(Settings())
+
+    @app.get("/boom")
+    def boom() -> None:
+        raise RuntimeError("secret internal detail")
+
+    with TestClient(app, raise_server_exceptions=False) as client:
+        r = client.get("/boom")
+    assert r.status_code == 500
+    assert r.json() == {"detail": "internal server error"}
