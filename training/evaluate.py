@@ -466,7 +466,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             "refine_max_distance": baselines.REFINE_MAX_DISTANCE,
             "icp_max_iterations": baselines.ICP_MAX_ITERATIONS,
             "voxel": baselines.VOXEL,
-            "normals": f"PCA, hybrid radius {baselines.NORMAL_RADIUS} / {baselines.NORMAL_KNN} nn (estimated)",
+            "normals": f"estimated: PCA over {baselines.NORMAL_KNN} nearest neighbours, oriented outwards",
+            "fpfh_radius": baselines.FPFH_RADIUS,
             "ransac": [baselines.RANSAC_MAX_ITERATIONS, baselines.RANSAC_CONFIDENCE],
         }
         runners += [baseline_runner(m, fns[m]) for m in BASELINE_METHODS if m in args.methods]
