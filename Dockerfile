@@ -1,0 +1,51 @@
+# PRANet registration service: onnxruntime + Open3D ICP behind FastAPI/uvicorn. No torch in this image.
+#   docker build -t pranet .
+#   docker run --rm -p 8000:8000 pranet            # add -e PRANET_API_KEY=... to require a bearer token
+# The model shipped in the wheel (pranet.model: model/default/*.onnx, card.json) is served by default;
+# mount another one with -v /path/to/model:/model:ro -e PRANET_MODEL_DIR=/model.
+
+# --- build: the project's wheel (setuptools from PyPI, in pip's isolated build environment) ----------
+FROM python:3.11-slim AS build
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY core/ core/
+COPY model/ model/
+COPY training/ training/
+COPY service/ service/
+COPY client/ client/
+RUN pip wheel --no-cache-dir --no-deps . -w /dist
+
+# --- runtime ------------------------------------------------------------------------------------------
+FROM python:3.11-slim
+
+# open3d-cpu's libOpen3D links libusb-1.0, libGL, libEGL and libX11 (no display is used: ICP only).
+# Debian package versions are not pinned: the security archive replaces them; Python packages are.
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libusb-1.0-0 libgl1 libegl1 libx11-6 \
+    && rm -rf /var/lib/apt/lists/*
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PRANET_HOST=0.0.0.0 \
+    PRANET_PORT=8000
+
+# The wheel with the service extra only, every dependency pinned by requirements/service.lock.
+COPY requirements/service.lock /tmp/service.lock
+COPY --from=build /dist/ /tmp/wheels/
+RUN pip install --no-cache-dir -c /tmp/service.lock "$(ls /tmp/wheels/pranet-*.whl)[service]" \
+    && rm -rf /tmp/wheels /tmp/service.lock \
+    && python -c "import importlib.util as u; assert u.find_spec('torch') is None, 'torch must not be in the image'" \
+    && python -c "from pranet.model.runtime import RewardModel; print('model', RewardModel.load(threads=1).info())"
+
+# A non-root user with a fixed numeric id (mounts and Kubernetes runAsUser can rely on it).
+RUN groupadd --gid 10001 pranet \
+    && useradd --create-home --uid 10001 --gid 10001 --shell /usr/sbin/nologin pranet
+USER 10001:10001
+WORKDIR /home/pranet
+
+EXPOSE 8000
+HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
+    CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/health' % os.environ.get('PRANET_PORT', '8000'), timeout=4)"]
+CMD ["pranet-serve", "--host", "0.0.0.0"]
