@@ -7,6 +7,7 @@ from functools import partial
 
 import anyio
 from fastapi import APIRouter, Request
+from starlette.requests import ClientDisconnect
 
 from pranet.service.icp import make_icp
 from pranet.service.registration import RequestError, run_registration
@@ -50,7 +51,10 @@ async def register_clouds(request: Request) -> RegisterResponse:
     if media_type != "application/json":
         raise RequestError(415, f"Content-Type must be application/json, got {media_type or 'none'!r}")
     with state.admission.admit():
-        body = await request.body()
+        try:
+            body = await request.body()
+        except ClientDisconnect:
+            raise RequestError(400, "client disconnected while sending the body") from None
         work = partial(
             run_registration,
             body,
