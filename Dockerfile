@@ -18,11 +18,12 @@ RUN pip wheel --no-cache-dir --no-deps . -w /dist
 # --- runtime ------------------------------------------------------------------------------------------
 FROM python:3.11-slim
 
-# open3d-cpu's libOpen3D links libusb-1.0, libGL, libEGL and libX11 (no display is used: ICP only).
+# open3d-cpu's libOpen3D links libusb-1.0, libGL, libEGL, libX11 and libidn2 (no display is used: ICP only);
+# checked with ldd in a Debian trixie minbase root, the base of python:3.11-slim.
 # Debian package versions are not pinned: the security archive replaces them; Python packages are.
 # hadolint ignore=DL3008
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends libusb-1.0-0 libgl1 libegl1 libx11-6 \
+    && apt-get install -y --no-install-recommends libusb-1.0-0 libgl1 libegl1 libx11-6 libidn2-0 \
     && rm -rf /var/lib/apt/lists/*
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
