@@ -29,7 +29,9 @@ Matrix4 = Annotated[list[list[float]], Field(min_length=4, max_length=4, descrip
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Request bodies: unknown fields are errors, and no coercion ("1" is no int, 0 is no bool)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 class EncodedCloud(_Strict):

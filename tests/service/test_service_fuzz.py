@@ -30,7 +30,7 @@ CHECKS = [not_a_server_error, status_code_conformance, content_type_conformance,
 FUZZ_SETTINGS = settings(
     deadline=None,
     database=None,
-    derandomize=os.environ.get("PRANET_FUZZ_RANDOM") != "1",
+    derandomize=os.environ.get("PRANET_FUZZ_RANDOM") != "1",  # a fixed seed (cases may still vary a little)
     phases=[Phase.explicit, Phase.generate],
     suppress_health_check=list(HealthCheck),
 )

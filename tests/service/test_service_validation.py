@@ -229,6 +229,24 @@ def test_out_of_range_options(http: httpx.Client, fields: dict) -> None:
     assert next(iter(fields)) in _messages(r)
 
 
+@pytest.mark.parametrize(
+    "fields",
+    [
+        {"icp": 0},
+        {"early_stop": "true"},
+        {"return_trajectory": "yes"},
+        {"seed": "5"},
+        {"seed": 5.0},
+        {"steps": ["1", "2"]},
+    ],
+)
+def test_no_type_coercion(http: httpx.Client, fields: dict) -> None:
+    """Strict types: a client bug like sending "5" for 5 or 0 for false is reported, not guessed at."""
+    r = _post(http, **fields)
+    assert r.status_code == 422
+    assert next(iter(fields)) in _messages(r)
+
+
 @pytest.mark.parametrize("content_type", [None, "text/plain", "application/x-www-form-urlencoded", "application/xml"])
 def test_wrong_content_type(http: httpx.Client, content_type: str | None) -> None:
     source, target = _good()
