@@ -15,6 +15,10 @@ class NetConfig:
     or ``"dynamic"`` (kNN recomputed in feature space at each layer, as in DGCNN).
     ``center_inputs``: embed each cloud about its own centroid and give the heads the centroid
     offset, so the point features do not depend on translation.
+    ``correspondence`` (beyond the paper): soft correspondences of the source points in the target
+    from the final features (DCP-style attention over target xyz), reduced to a rotation estimate
+    (polar factor of the cross-covariance, by Newton-Schulz) and a residual offset that join the
+    pooled features at the MLP input.
     """
 
     n_points: int = 512
@@ -29,6 +33,7 @@ class NetConfig:
     ff_dim: int = 256
     pool: str = "max"  # "max" | "maxmean"
     center_inputs: bool = True
+    correspondence: bool = False
     mlp_shared: tuple[int, ...] = (256,)
     mlp_head: tuple[int, ...] = (128,)
 

@@ -74,12 +74,13 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
     )
     torch.onnx.export(
         ScoreGraph(net),
-        (pts, knn, feats, cen),
+        (pts, knn, pts, feats, cen),
         str(out / "score.onnx"),
-        input_names=["points", "knn", "target_features", "target_centroid"],
+        input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
         output_names=["rewards"],
         dynamic_axes={
             **axes,
+            "target_points": {0: "batch", 1: "m"},
             "target_features": {0: "batch", 1: "m"},
             "target_centroid": {0: "batch"},
             "rewards": {0: "batch"},

@@ -117,6 +117,40 @@ class TransformerBlock(nn.Module):
         return x + self.ff(self.norm_ff(x))
 
 
+def polar_rotation(H: Tensor, iterations: int = 20) -> Tensor:
+    """Orthogonal polar factor of ``H: (B, 3, 3)`` by Newton-Schulz (SVD-free, so it exports to ONNX).
+
+    ``X <- X (3I - XᵀX) / 2`` from ``H / ||H||_F`` converges to ``U Vᵀ`` of ``H = U S Vᵀ``.
+    """
+    X = H / (H.flatten(1).norm(dim=1).view(-1, 1, 1) + 1e-9)
+    eye3 = torch.eye(3, dtype=H.dtype, device=H.device)
+    for _ in range(iterations):
+        X = 0.5 * X @ (3.0 * eye3 - X.transpose(1, 2) @ X)
+    return X
+
+
+class SoftCorrespondence(nn.Module):
+    """Soft correspondences ``ŷ_i = Σ_j softmax_j(q_i·k_j) y_j`` of the source points in the target
+    (DCP), summarised as the rotation ``R ≈ polar(Σ x_i ŷ_iᵀ)ᵀ`` and the mean residual ``ŷ - R x``.
+
+    With ``ŷ_i = R x_i``: ``H = Σ x_i x_iᵀ Rᵀ = C Rᵀ``, whose orthogonal polar factor is ``Rᵀ``.
+    """
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.q = nn.Linear(dim, dim)
+        self.k = nn.Linear(dim, dim)
+        self.scale = dim**-0.5
+
+    def forward(self, fx: Tensor, fy: Tensor, x: Tensor, y: Tensor) -> Tensor:  # -> (B, 12)
+        attn = torch.softmax(self.q(fx) @ self.k(fy).transpose(1, 2) * self.scale, dim=-1)  # (B, N, M)
+        y_hat = attn @ y  # (B, N, 3)
+        H = x.transpose(1, 2) @ y_hat / x.shape[1]  # (B, 3, 3)
+        R = polar_rotation(H).transpose(1, 2)  # (B, 3, 3): x -> y
+        residual = (y_hat - x @ R.transpose(1, 2)).mean(dim=1)  # (B, 3)
+        return torch.cat([R.flatten(1), residual], dim=-1)
+
+
 def mlp(dims: tuple[int, ...]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for a, b in zip(dims[:-1], dims[1:], strict=True):
@@ -137,6 +171,8 @@ class RewardNet(nn.Module):
         )
         pooled = D * (2 if cfg.pool == "maxmean" else 1)
         extra = 3 if cfg.center_inputs else 0
+        self.correspondence = SoftCorrespondence(D) if cfg.correspondence else None
+        extra += 12 if cfg.correspondence else 0
         self.shared = mlp((2 * pooled + extra, *cfg.mlp_shared))
         width = cfg.mlp_shared[-1]
         n_rot, n_trans = len(table.rotation_indices), len(table.translation_indices)
@@ -158,20 +194,37 @@ class RewardNet(nn.Module):
             return torch.cat([x.amax(dim=1), x.mean(dim=1)], dim=-1)
         return x.amax(dim=1)
 
-    def score(self, src: Tensor, src_centroid: Tensor, tgt: Tensor, tgt_centroid: Tensor) -> Tensor:
-        """Embeddings of both clouds -> ``rewards: (B, A)`` in action-table order."""
+    def score(
+        self,
+        src: Tensor,
+        src_centroid: Tensor,
+        tgt: Tensor,
+        tgt_centroid: Tensor,
+        src_points: Tensor | None = None,
+        tgt_points: Tensor | None = None,
+    ) -> Tensor:
+        """Embeddings of both clouds -> ``rewards: (B, A)`` in action-table order.
+
+        ``src_points``/``tgt_points`` (``(B, N, 3)``, ``(B, M, 3)``) are needed with ``correspondence``.
+        """
         for block in self.blocks:
             # Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X) with shared weights (paper, "Architecture").
             src, tgt = block(src, tgt), block(tgt, src)
         parts = [self._pool(src), self._pool(tgt)]
         if self.cfg.center_inputs:
             parts.append(src_centroid - tgt_centroid)
+        if self.correspondence is not None:
+            if src_points is None or tgt_points is None:
+                raise ValueError("this network needs the points of both clouds (correspondence=True)")
+            x = src_points - src_centroid.unsqueeze(1)
+            y = tgt_points - tgt_centroid.unsqueeze(1)
+            parts.append(self.correspondence(src, tgt, x, y))
         h = self.shared(torch.cat(parts, dim=-1))
         out = torch.cat([self.rotation_head(h), self.translation_head(h)], dim=-1)
         return out[:, self.table_order]
 
     def forward(self, source: Tensor, source_knn: Tensor, target: Tensor, target_knn: Tensor) -> Tensor:
-        return self.score(*self.embed(source, source_knn), *self.embed(target, target_knn))
+        return self.score(*self.embed(source, source_knn), *self.embed(target, target_knn), source, target)
 
 
 class EmbedGraph(nn.Module):
@@ -186,11 +239,16 @@ class EmbedGraph(nn.Module):
 
 
 class ScoreGraph(nn.Module):
-    """ONNX graph 2: ``(source, source_knn, target_features, target_centroid) -> rewards``; once per step."""
+    """ONNX graph 2: ``(points, knn, target_points, target_features, target_centroid) -> rewards``; once a step.
+
+    ``target_points`` is only an input of networks with ``correspondence``.
+    """
 
     def __init__(self, net: RewardNet) -> None:
         super().__init__()
         self.net = net
 
-    def forward(self, points: Tensor, knn: Tensor, target_features: Tensor, target_centroid: Tensor) -> Tensor:
-        return self.net.score(*self.net.embed(points, knn), target_features, target_centroid)
+    def forward(
+        self, points: Tensor, knn: Tensor, target_points: Tensor, target_features: Tensor, target_centroid: Tensor
+    ) -> Tensor:
+        return self.net.score(*self.net.embed(points, knn), target_features, target_centroid, points, target_points)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -75,6 +74,7 @@ class RewardModel:
     sha256: str
     _embed: Any
     _score: Any
+    _score_inputs: tuple[str, ...] = ()
 
     @classmethod
     def load(
@@ -111,6 +111,7 @@ class RewardModel:
             sha256=digest,
             _embed=sessions[0],
             _score=sessions[1],
+            _score_inputs=tuple(i.name for i in sessions[1].get_inputs()),
         )
 
     def embed(self, points: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -123,32 +124,36 @@ class RewardModel:
         return feats, cen, knn
 
     def score(
-        self, points: np.ndarray, knn: np.ndarray, target_features: np.ndarray, target_centroid: np.ndarray
+        self,
+        points: np.ndarray,
+        knn: np.ndarray,
+        target_points: np.ndarray,
+        target_features: np.ndarray,
+        target_centroid: np.ndarray,
     ) -> np.ndarray:
-        """Batched rewards ``(B, A)``: ``points (B, N, 3) float32``, ``knn (B, N, k) int64``."""
-        return self._score.run(
-            None,
-            {"points": points, "knn": knn, "target_features": target_features, "target_centroid": target_centroid},
-        )[0]
+        """Batched rewards ``(B, A)``: ``points (B, N, 3) float32``, ``knn (B, N, k) int64``, target ``(B, M, ...)``."""
+        feeds = {
+            "points": points,
+            "knn": knn,
+            "target_points": target_points,
+            "target_features": target_features,
+            "target_centroid": target_centroid,
+        }
+        return self._score.run(None, {name: feeds[name] for name in self._score_inputs})[0]
 
     def score_fn(self, target: npt.ArrayLike) -> ScoreFn:
         """A ``score_fn`` for one registration onto ``target: (M, 3)`` (embedded here, once)."""
-        t_feat, t_cen, _ = self.embed(target)
+        t_pts = np.asarray(target, dtype=np.float32)[None]
+        t_feat, t_cen, _ = self.embed(t_pts)
         cache: dict[str, np.ndarray] = {}
 
         def score(source: np.ndarray, _target: np.ndarray) -> np.ndarray:
             pts = np.asarray(source, dtype=np.float32)[None]
             if "knn" not in cache:
                 cache["knn"] = knn_indices(pts, self.k)
-            return self.score(pts, cache["knn"], t_feat, t_cen)[0]
+            return self.score(pts, cache["knn"], t_pts, t_feat, t_cen)[0]
 
         return score
 
     def info(self) -> dict[str, Any]:
         return {"name": self.card.get("name"), "version": self.card.get("version"), "sha256": self.sha256}
-
-
-def batch_score_fn(model: RewardModel, target: npt.ArrayLike, n_batch: int) -> Sequence[Any]:
-    """Target features tiled for ``n_batch`` sources (used by the multi-start global mode)."""
-    t_feat, t_cen, _ = model.embed(target)
-    return np.repeat(t_feat, n_batch, axis=0), np.repeat(t_cen, n_batch, axis=0)

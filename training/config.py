@@ -85,7 +85,7 @@ PRESETS: dict[str, TrainConfig] = {
     # The shipped default, sized for a 2-core CPU (see docs/DESIGN.md for the measurements behind it).
     "cpu": TrainConfig(
         preset="cpu",
-        net=replace(CPU_NET, n_points=256, pool="maxmean"),
+        net=replace(CPU_NET, n_points=256, pool="maxmean", correspondence=True),
         sampling=SamplingConfig(
             settings=(("clean", 1.0), ("noisy", 1.0), ("partial", 1.0)),
             # Beyond the paper: Haar sampling up to 60° almost never draws the < 10° states the fine
@@ -94,7 +94,7 @@ PRESETS: dict[str, TrainConfig] = {
             orientation_max_deg=60.0,
         ),
         optim=OptimConfig(
-            optimizer="adamw", lr=1e-3, weight_decay=1e-4, schedule="cosine", batch_size=16, epochs=32, grad_clip=1.0
+            optimizer="adamw", lr=1e-3, weight_decay=1e-4, schedule="cosine", batch_size=16, epochs=30, grad_clip=1.0
         ),
         threads=2,
     ),

@@ -19,7 +19,7 @@ from pranet.model.runtime import ModelLoadError, RewardModel, default_model_dir,
 def exported(tmp_path_factory):
     torch.manual_seed(0)
     table = build_action_table()
-    cfg = NetConfig(n_points=128, pool="maxmean")
+    cfg = NetConfig(n_points=128, pool="maxmean", correspondence=True)
     net = RewardNet(cfg, table).eval()
     out = tmp_path_factory.mktemp("model")
     card = {
@@ -67,7 +67,7 @@ def test_batched_score_matches_single(exported):
     tgt = rng.standard_normal((128, 3)).astype(np.float32)
     tf, tc, _ = model.embed(tgt)
     knn = knn_indices(srcs, model.k)
-    batch = model.score(srcs, knn, np.repeat(tf, 3, 0), np.repeat(tc, 3, 0))
+    batch = model.score(srcs, knn, np.repeat(tgt[None], 3, 0), np.repeat(tf, 3, 0), np.repeat(tc, 3, 0))
     for i in range(3):
         np.testing.assert_allclose(batch[i], model.score_fn(tgt)(srcs[i], tgt), rtol=1e-4, atol=1e-5)
 

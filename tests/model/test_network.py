@@ -88,3 +88,15 @@ def test_paper_preset_dynamic_graph_runs():
     with torch.no_grad():
         assert net(x, k, x, k).shape == (1, 24)
     assert np.isfinite(net(x, k, x, k).detach().numpy()).all()
+
+
+def test_polar_rotation_matches_svd():
+    from scipy.spatial.transform import Rotation
+
+    from pranet.model.network import polar_rotation
+
+    rng = np.random.default_rng(0)
+    R = torch.from_numpy(Rotation.random(8, random_state=4).as_matrix())
+    C = torch.from_numpy(np.stack([np.diag(rng.uniform(0.02, 1.0, 3)) for _ in range(8)]))
+    H = C @ R.transpose(1, 2)  # the cross-covariance of exact correspondences y = R x
+    torch.testing.assert_close(polar_rotation(H, iterations=40).transpose(1, 2), R, atol=1e-6, rtol=1e-6)
