@@ -4,7 +4,12 @@
 table fingerprint against this package's action table, then opens two CPU sessions with explicit
 thread settings. ``model.score_fn(target)`` embeds the target once and returns the
 ``score_fn(source, target) -> rewards`` the agent loop calls; it computes the source kNN graph on
-its first call and reuses it (rigid motion does not change it).
+its first call and reuses it (rigid motion does not change it); the feeds of the per-step score call
+are built once, only the source buffer is refilled each step.
+
+``precision="int8"`` loads ``embed.int8.onnx``/``score.int8.onnx`` (``pranet.model.quantize``, written
+by ``pranet-export --int8``) instead of the fp32 graphs; their sha256 is checked against the card the
+same way. The session options are measured in ``docs/PERFORMANCE.md`` (``pranet-bench``).
 """
 
 from __future__ import annotations
@@ -20,10 +25,21 @@ import numpy as np
 import numpy.typing as npt
 
 from pranet.core.actions import ActionTable, build_action_table
-from pranet.core.agent import ScoreFn
+from pranet.core.agent import BatchScoreFn, ScoreFn
 from pranet.core.knn import knn_indices
 
 GRAPHS = ("embed.onnx", "score.onnx")
+PRECISIONS = ("fp32", "int8")
+INT8_GRAPHS = ("embed.int8.onnx", "score.int8.onnx")
+OPTIMIZATION_LEVELS = ("none", "basic", "extended", "all")
+EXECUTION_MODES = ("sequential", "parallel")
+
+
+def graph_files(precision: str = "fp32") -> tuple[str, str]:
+    """``(embed, score)`` file names of ``precision``."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"unknown precision {precision!r}; choose from {PRECISIONS}")
+    return GRAPHS if precision == "fp32" else INT8_GRAPHS
 
 
 class ModelLoadError(RuntimeError):
@@ -39,7 +55,7 @@ def _sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def read_card(model_dir: Path, verify: bool = True) -> dict[str, Any]:
+def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> dict[str, Any]:
     card_path = model_dir / "card.json"
     if not card_path.is_file():
         raise ModelLoadError(
@@ -49,11 +65,26 @@ def read_card(model_dir: Path, verify: bool = True) -> dict[str, Any]:
         card = json.loads(card_path.read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise ModelLoadError(f"unreadable model card {card_path}: {e}") from e
-    for name in GRAPHS:
+    graphs = graph_files(precision)
+    files = card.get("files", {})
+    if precision != "fp32":
+        missing = [name for name in graphs if name not in files or not (model_dir / name).is_file()]
+        made_from = card.get("quantization", {}).get("from", {})
+        if missing:
+            raise ModelLoadError(
+                f"no {precision} graphs in {model_dir} (missing or not in the card: {', '.join(missing)}); "
+                f"write them with: pranet-export --int8 --out {model_dir}"
+            )
+        if any(made_from.get(name) != files.get(name) for name in GRAPHS):
+            raise ModelLoadError(
+                f"the {precision} graphs in {model_dir} were made from other fp32 graphs than the card's (stale); "
+                f"re-run: pranet-export --int8 --out {model_dir}"
+            )
+    for name in graphs:
         path = model_dir / name
         if not path.is_file():
             raise ModelLoadError(f"missing model graph {path}")
-        if verify and _sha256(path) != card.get("files", {}).get(name):
+        if verify and _sha256(path) != files.get(name):
             raise ModelLoadError(f"{path}: sha256 does not match the model card (corrupt or replaced file)")
     table = build_action_table(card["actions"]["scales"])
     if table.fingerprint != card["actions"]["fingerprint"]:
@@ -76,32 +107,36 @@ class RewardModel:
     _score: Any
     _score_inputs: tuple[str, ...] = ()
 
+    precision: str = "fp32"
+
     @classmethod
     def load(
-        cls, model_dir: str | Path | None = None, threads: int = 2, verify: bool = True, optimization: str = "all"
+        cls,
+        model_dir: str | Path | None = None,
+        threads: int = 2,
+        verify: bool = True,
+        optimization: str = "all",
+        precision: str = "fp32",
+        execution: str = "sequential",
+        arena: bool = True,
+        mem_pattern: bool = True,
+        spinning: bool = True,
     ) -> RewardModel:
-        import onnxruntime as ort
-
+        """Open both graphs of ``precision`` in CPU sessions built by ``session_options`` (same arguments)."""
         model_dir = Path(model_dir) if model_dir else default_model_dir()
-        card = read_card(model_dir, verify=verify)
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = {
-            "none": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
-            "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
-            "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
-            "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
-        }[optimization]
+        card = read_card(model_dir, verify=verify, precision=precision)
+        graphs = graph_files(precision)
+        opts = session_options(threads, optimization, execution, arena, mem_pattern, spinning)
         try:
+            import onnxruntime as ort
+
             sessions = [
                 ort.InferenceSession(str(model_dir / g), sess_options=opts, providers=["CPUExecutionProvider"])
-                for g in GRAPHS
+                for g in graphs
             ]
         except Exception as e:  # onnxruntime raises its own exception types for bad files
             raise ModelLoadError(f"onnxruntime cannot load {model_dir}: {e}") from e
-        digest = hashlib.sha256("".join(card["files"][g] for g in GRAPHS).encode()).hexdigest()
+        digest = hashlib.sha256("".join(card["files"][g] for g in graphs).encode()).hexdigest()
         return cls(
             card=card,
             table=build_action_table(card["actions"]["scales"]),
@@ -112,6 +147,7 @@ class RewardModel:
             _embed=sessions[0],
             _score=sessions[1],
             _score_inputs=tuple(i.name for i in sessions[1].get_inputs()),
+            precision=precision,
         )
 
     def embed(self, points: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -142,18 +178,92 @@ class RewardModel:
         return self._score.run(None, {name: feeds[name] for name in self._score_inputs})[0]
 
     def score_fn(self, target: npt.ArrayLike) -> ScoreFn:
-        """A ``score_fn`` for one registration onto ``target: (M, 3)`` (embedded here, once)."""
-        t_pts = np.asarray(target, dtype=np.float32)[None]
+        """A ``score_fn`` for one registration onto ``target: (M, 3)`` (embedded here, once).
+
+        The feeds are built once: the target's points, features and centroid and the source's kNN graph
+        (computed on the first call: the agent only moves the source rigidly) never change; each step
+        only copies the moved source into a preallocated float32 buffer.
+        """
+        t_pts = np.ascontiguousarray(np.asarray(target, dtype=np.float32)[None])
         t_feat, t_cen, _ = self.embed(t_pts)
-        cache: dict[str, np.ndarray] = {}
+        feeds: dict[str, np.ndarray] = {}
+        run = self._score.run
 
         def score(source: np.ndarray, _target: np.ndarray) -> np.ndarray:
-            pts = np.asarray(source, dtype=np.float32)[None]
-            if "knn" not in cache:
-                cache["knn"] = knn_indices(pts, self.k)
-            return self.score(pts, cache["knn"], t_pts, t_feat, t_cen)[0]
+            if not feeds:
+                pts = np.empty((1, *np.shape(source)), dtype=np.float32)
+                pts[0] = source
+                all_feeds = {
+                    "points": pts,
+                    "knn": knn_indices(pts, self.k),
+                    "target_points": t_pts,
+                    "target_features": t_feat,
+                    "target_centroid": t_cen,
+                }
+                feeds.update({name: all_feeds[name] for name in self._score_inputs})
+            else:
+                feeds["points"][0] = source  # cast to float32 in place: no allocation per step
+            return run(None, feeds)[0][0]
+
+        return score
+
+    def batch_score_fn(self, target: npt.ArrayLike) -> BatchScoreFn:
+        """A ``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` for one registration onto ``target: (M, 3)``.
+
+        The target is embedded once and tiled over ``B``; the rows are one source point set in ``B``
+        poses (the global mode's starts), so the kNN graph of the first row serves every row.
+        """
+        t_pts = np.asarray(target, dtype=np.float32)[None]  # (1, M, 3)
+        t_feat, t_cen, _ = self.embed(t_pts)
+        tiled: dict[int, tuple[np.ndarray, ...]] = {}  # B -> (knn, target points, features, centroid) tiled
+
+        def score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
+            pts = np.ascontiguousarray(sources, dtype=np.float32)  # (B, N, 3)
+            b = len(pts)
+            if b not in tiled:
+                knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.k)  # (1, N, k)
+                tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, t_pts, t_feat, t_cen))
+            return self.score(pts, *tiled[b])
 
         return score
 
     def info(self) -> dict[str, Any]:
         return {"name": self.card.get("name"), "version": self.card.get("version"), "sha256": self.sha256}
+
+
+def session_options(
+    threads: int = 2,
+    optimization: str = "all",
+    execution: str = "sequential",
+    arena: bool = True,
+    mem_pattern: bool = True,
+    spinning: bool = True,
+) -> Any:  # onnxruntime.SessionOptions
+    """onnxruntime ``SessionOptions`` with explicit settings (the defaults are what the service uses).
+
+    ``threads``: intra-op threads; ``optimization``: one of ``OPTIMIZATION_LEVELS``; ``execution``:
+    ``sequential`` or ``parallel`` (then 2 inter-op threads); ``arena``/``mem_pattern``: the CPU memory
+    arena and the memory-pattern planner; ``spinning``: whether idle intra-op threads busy-wait.
+    """
+    import onnxruntime as ort
+
+    if optimization not in OPTIMIZATION_LEVELS:
+        raise ValueError(f"unknown optimization {optimization!r}; choose from {OPTIMIZATION_LEVELS}")
+    if execution not in EXECUTION_MODES:
+        raise ValueError(f"unknown execution {execution!r}; choose from {EXECUTION_MODES}")
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 2 if execution == "parallel" else 1
+    opts.execution_mode = (
+        ort.ExecutionMode.ORT_PARALLEL if execution == "parallel" else ort.ExecutionMode.ORT_SEQUENTIAL
+    )
+    opts.graph_optimization_level = {
+        "none": ort.GraphOptimizationLevel.ORT_DISABLE_ALL,
+        "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+        "extended": ort.GraphOptimizationLevel.ORT_ENABLE_EXTENDED,
+        "all": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+    }[optimization]
+    opts.enable_cpu_mem_arena = arena
+    opts.enable_mem_pattern = mem_pattern
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
+    return opts
