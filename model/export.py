@@ -9,6 +9,10 @@ per registration:
 and ``card.json``: preset, N, k, the action table (scales, names, fingerprint), the schedule, the
 network config, the training summary and the sha256 of both graphs (checked at load). The same
 metadata is stored in each graph's ``metadata_props``.
+
+``--int8`` also writes dynamically quantized ``embed.int8.onnx``/``score.int8.onnx`` (listed in the
+card with their sha256; ``pranet.model.quantize``). Without a checkpoint, ``pranet-export --int8 --out
+DIR`` adds them to the existing model directory ``DIR``.
 """
 
 from __future__ import annotations
@@ -55,6 +59,8 @@ def _set_metadata(path: Path, meta: dict[str, str]) -> None:
 def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, Any]:
     """Write ``embed.onnx``, ``score.onnx`` and ``card.json`` into ``out``; returns the card."""
     out.mkdir(parents=True, exist_ok=True)
+    for stale in ("embed.int8.onnx", "score.int8.onnx"):  # made from the previous graphs, if any
+        (out / stale).unlink(missing_ok=True)
     cfg = net.cfg
     N, k = cfg.n_points, cfg.k
     pts = torch.randn(1, N, 3)
@@ -129,14 +135,26 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="pranet-export", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    p.add_argument("checkpoint", type=Path, help="a .pt file written by pranet-train")
+    p.add_argument("checkpoint", type=Path, nargs="?", help="a .pt file written by pranet-train")
     p.add_argument("--out", type=Path, required=True, help="model directory to write")
     p.add_argument("--name", default="pranet-cpu")
     p.add_argument("--version", default="0.1.0")
+    p.add_argument(
+        "--int8",
+        action="store_true",
+        help="also write int8 graphs (dynamic quantization); without a checkpoint: add them to --out",
+    )
     args = p.parse_args(argv)
-    net, ck = load_checkpoint(args.checkpoint)
-    card = export_model(net, args.out, card_from_checkpoint(ck, args.name, args.version))
-    print(json.dumps({"out": str(args.out), "files": card["files"], "training": card["training"]}, indent=2))
+    if args.checkpoint is None and not args.int8:
+        p.error("a checkpoint is required (or --int8 to quantize the existing model directory --out)")
+    if args.checkpoint is not None:
+        net, ck = load_checkpoint(args.checkpoint)
+        card = export_model(net, args.out, card_from_checkpoint(ck, args.name, args.version))
+    if args.int8:
+        from pranet.model.quantize import quantize_model_dir
+
+        card = quantize_model_dir(args.out)
+    print(json.dumps({"out": str(args.out), "files": card["files"], "training": card.get("training")}, indent=2))
     return 0
 
 

@@ -1,0 +1,84 @@
+"""int8 variants of a model directory: dynamic quantization of both graphs with onnxruntime (no torch).
+
+``quantize_model_dir(dir)`` writes ``embed.int8.onnx`` and ``score.int8.onnx`` beside the fp32 graphs
+and lists them in ``card.json`` (``files``, with their sha256, checked at load like the fp32 ones),
+together with a ``quantization`` entry naming the fp32 graphs they were made from, so that a stale int8
+file (the fp32 graphs re-exported since) is refused. ``RewardModel.load(dir, precision="int8")``
+loads them; the service does with ``PRANET_PRECISION=int8``. ``pranet-export --int8`` calls this.
+
+Dynamic quantization: the weights of MatMul/Gemm become int8 (per output channel), activations are
+quantized per tensor at run time. MatMuls of two activations (attention scores, attention @ values)
+stay fp32 (``MatMulConstBOnly``), which keeps the drift of the rewards small.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tempfile
+from pathlib import Path
+from typing import Any
+
+FP32_GRAPHS = ("embed.onnx", "score.onnx")
+INT8_GRAPHS = ("embed.int8.onnx", "score.int8.onnx")
+OP_TYPES = ("MatMul", "Gemm")
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def quantize_graph(src: Path, dst: Path, per_channel: bool = True) -> None:
+    """Dynamic int8 quantization of one ONNX graph (weights QInt8, activations quantized at run time)."""
+    import onnx
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    with tempfile.TemporaryDirectory() as tmp:
+        prepared = Path(tmp) / "prepared.onnx"
+        try:  # shape inference + graph cleanup, as onnxruntime recommends before quantizing
+            quant_pre_process(str(src), str(prepared), skip_symbolic_shape=False)
+        except Exception:  # pre-processing is an optimisation; quantize the graph as it is if it fails
+            prepared = src
+        quantize_dynamic(
+            str(prepared),
+            str(dst),
+            op_types_to_quantize=list(OP_TYPES),
+            per_channel=per_channel,
+            weight_type=QuantType.QInt8,
+            extra_options={"MatMulConstBOnly": True},
+        )
+    # Keep the model's metadata (card fields) on the int8 graph too.
+    meta = {p.key: p.value for p in onnx.load(str(src), load_external_data=False).metadata_props}
+    model = onnx.load(str(dst))
+    del model.metadata_props[:]
+    for key, value in {**meta, "precision": "int8"}.items():
+        model.metadata_props.add(key=key, value=value)
+    onnx.save(model, str(dst))
+
+
+def quantize_model_dir(model_dir: str | Path, per_channel: bool = True) -> dict[str, Any]:
+    """Write the int8 graphs into ``model_dir`` and list them in its card; returns the updated card."""
+    import onnxruntime
+
+    from pranet.model.runtime import read_card
+
+    model_dir = Path(model_dir)
+    card_path = model_dir / "card.json"
+    card = read_card(model_dir, verify=True)  # quantize only verified fp32 graphs
+    for fp32, int8 in zip(FP32_GRAPHS, INT8_GRAPHS, strict=True):
+        quantize_graph(model_dir / fp32, model_dir / int8, per_channel=per_channel)
+    files = {k: v for k, v in card.get("files", {}).items() if k not in INT8_GRAPHS}
+    files.update({name: _sha256(model_dir / name) for name in INT8_GRAPHS})
+    card["files"] = files
+    card["quantization"] = {
+        "method": "onnxruntime.quantization.quantize_dynamic",
+        "weight_type": "QInt8",
+        "per_channel": per_channel,
+        "op_types": list(OP_TYPES),
+        "matmul_const_b_only": True,
+        "onnxruntime": onnxruntime.__version__,
+        "from": {name: files.get(name) for name in FP32_GRAPHS},  # the fp32 graphs the int8 ones were made from
+    }
+    card_path.write_text(json.dumps(card, indent=2) + "\n")
+    return card
