@@ -27,6 +27,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--model", dest="model_dir", help="model directory (PRANET_MODEL_DIR, default: the shipped model)")
     p.add_argument("--workers", type=int, help="worker processes (PRANET_WORKERS, default 1)")
     p.add_argument("--threads", type=int, help="onnxruntime threads per worker (PRANET_THREADS, default 2)")
+    p.add_argument("--precision", choices=("fp32", "int8"), help="model graphs (PRANET_PRECISION, default fp32)")
     p.add_argument("--log-level", help="uvicorn log level (PRANET_LOG_LEVEL, default info)")
     return p.parse_args(argv)
 
@@ -50,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(f"invalid settings: {problems}")
     # Fail fast, with one line, on a missing/corrupt model or an action-table mismatch.
     try:
-        model = load_model(settings.model_dir, threads=1)
+        model = load_model(settings.model_dir, threads=1, precision=settings.precision)
     except ModelLoadError as e:
         return fail(" ".join(str(e).split()))
     info = model.info()

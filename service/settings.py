@@ -23,6 +23,9 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535, description="TCP port")
     workers: int = Field(1, ge=1, le=64, description="uvicorn worker processes (each loads the model once)")
     threads: int = Field(2, ge=1, le=256, description="onnxruntime intra-op threads per worker")
+    precision: Literal["fp32", "int8"] = Field(
+        "fp32", description="model graphs to run: fp32, or int8 (dynamic quantization; pranet-export --int8)"
+    )
     max_points: int = Field(200_000, ge=3, description="most points accepted per cloud")
     max_body_bytes: int = Field(100 * 1024 * 1024, ge=1024, description="largest request body in bytes (else 413)")
     request_timeout_s: float = Field(30.0, gt=0, le=3600, description="deadline per registration, queueing included")

@@ -16,11 +16,11 @@ from pranet.service.settings import Settings
 log = logging.getLogger("pranet.service")
 
 
-def load_model(model_dir: Path | None, threads: int) -> RewardModel:
+def load_model(model_dir: Path | None, threads: int, precision: str = "fp32") -> RewardModel:
     """``RewardModel.load`` with every failure turned into a one-line ``ModelLoadError``."""
     where = model_dir or default_model_dir()
     try:
-        return RewardModel.load(model_dir, threads=threads)
+        return RewardModel.load(model_dir, threads=threads, precision=precision)
     except ModelLoadError:
         raise
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:  # a card with missing/mangled fields
@@ -64,7 +64,7 @@ class ServiceState:
 
     def load(self) -> None:
         try:
-            self.model = load_model(self.settings.model_dir, self.settings.threads)
+            self.model = load_model(self.settings.model_dir, self.settings.threads, self.settings.precision)
             self.model_error = None
             log.info("model %s loaded", self.model.info())
         except ModelLoadError as e:
