@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 
 from pranet.core.actions import build_action_table
-from pranet.core.agent import AgentTimeout, choose_action, oracle_score_fn, run_agent
+from pranet.core.agent import (
+    AgentTimeout,
+    batch_from_single,
+    choose_action,
+    oracle_score_fn,
+    run_agent,
+    run_agent_batch,
+)
 from pranet.core.metrics import isotropic_errors
 from pranet.core.sampling import sample_isotropic_rotations, sample_translations
 from pranet.core.se3 import apply_transform, make_transform
@@ -104,3 +111,65 @@ def test_stochastic_policies_are_seeded():
     a = run_agent(src, tgt, fn, TABLE, policy="stoch1", rng=rng_a)
     b = run_agent(src, tgt, fn, TABLE, policy="stoch1", rng=rng_b)
     np.testing.assert_array_equal(a.transform, b.transform)
+
+
+# --- The batched loop (global mode) -----------------------------------------------------------------
+
+
+def _starts(rng, n):
+    return np.stack(
+        [
+            make_transform(sample_isotropic_rotations(rng, np.pi, 1)[0], sample_translations(rng, 0.3, 1)[0])
+            for _ in range(n)
+        ]
+    )
+
+
+def test_batched_loop_equals_the_single_loop_per_start():
+    """One batched oracle call per step takes, for every start, exactly the steps the single loop takes."""
+    rng = np.random.default_rng(11)
+    src, tgt, T = random_problem(rng, n=200)
+    starts = _starts(rng, 5)
+    single = oracle_score_fn(T, src, TABLE)
+    calls = []
+
+    def batched(sources, target):
+        calls.append(len(sources))
+        return batch_from_single(single)(sources, target)
+
+    results = run_agent_batch(src, tgt, batched, TABLE, starts, schedule=(6, 4))
+    assert calls == [5] * 10  # one call per step, all starts in it
+    for T0, res in zip(starts, results, strict=True):
+        ref = run_agent(src, tgt, single, TABLE, schedule=(6, 4), initial_transform=T0)
+        assert [s.action for s in res.steps] == [s.action for s in ref.steps]
+        np.testing.assert_array_equal(res.transform, ref.transform)
+        for a, b in zip(res.steps, ref.steps, strict=True):
+            np.testing.assert_array_equal(a.transform, b.transform)
+            np.testing.assert_array_equal(a.rewards, b.rewards)
+
+
+def test_batched_early_stop_shrinks_the_batch():
+    """A start whose rewards are all negative leaves the batch for the rest of its scale."""
+    src = np.random.default_rng(12).standard_normal((40, 3))
+    starts = np.stack([np.eye(4), make_transform(np.eye(3), [5.0, 0.0, 0.0])])
+    sizes = []
+
+    def batched(sources, target):
+        sizes.append(len(sources))
+        r = np.ones((len(sources), len(TABLE)))
+        r[sources.mean(axis=(1, 2)) > 1.0] = -1.0  # the second start (moved by +5 in x) stops at once
+        return r
+
+    results = run_agent_batch(src, src, batched, TABLE, starts, schedule=(3, 2), early_stop=True)
+    assert sizes == [2, 1, 1, 2, 1]
+    assert len(results[0].steps) == 5 and results[0].stopped_early == []
+    assert results[1].steps == [] and results[1].stopped_early == [0, 0]
+    np.testing.assert_allclose(results[1].transform, starts[1])
+
+
+def test_batched_deadline_raises():
+    src = np.random.default_rng(13).standard_normal((30, 3))
+    with pytest.raises(AgentTimeout):
+        run_agent_batch(
+            src, src, lambda s, t: np.ones((len(s), len(TABLE))), TABLE, np.eye(4)[None], deadline=time.monotonic() - 1
+        )
