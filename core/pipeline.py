@@ -2,6 +2,12 @@
 
 ``register`` is what the service runs per request and what ``pranet-eval`` measures as pranet-v1
 (``icp=None``) and pranet-v2. The reward model and the ICP refinement are injected.
+
+``init="identity"`` (the paper's setting) runs the agent once from the input pose. ``init="global"``
+runs it from ``n_starts`` well-spread start rotations at once (``core.starts``; one batched score call
+per step), ranks the results by their confidence, refines the best ``refine_top`` with ICP and keeps
+the most confident: for initial rotations beyond the 60° the model was trained on. Every result
+carries a ``Confidence`` (``core.confidence``), computed in the unit frame.
 """
 
 from __future__ import annotations
@@ -15,9 +21,15 @@ import numpy as np
 import numpy.typing as npt
 
 from pranet.core.actions import ActionTable
-from pranet.core.agent import AgentResult, ScoreFn, run_agent
+from pranet.core.agent import AgentResult, BatchScoreFn, ScoreFn, batch_from_single, run_agent, run_agent_batch
+from pranet.core.confidence import DEFAULT_THRESHOLD, Confidence, ConfidenceEstimator
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
 from pranet.core.se3 import Array
+from pranet.core.starts import DEFAULT_STARTS, start_rotations, start_transforms
+
+INITS = ("identity", "global")
+DEFAULT_REFINE_TOP = 3  # global mode: starts refined by ICP, best first by their agent-only confidence
+RANK_SOURCE, RANK_TARGET = 256, 1024  # subsample sizes of the quick confidence that ranks the starts
 
 
 class Scorer(Protocol):
@@ -28,6 +40,13 @@ class Scorer(Protocol):
     n_points: int
 
     def score_fn(self, target: npt.ArrayLike) -> ScoreFn: ...
+
+
+def batch_score_fn(scorer: Scorer, target: npt.ArrayLike) -> BatchScoreFn:
+    """The scorer's own ``batch_score_fn(target)`` when it has one (one runtime call per step for all
+    starts), else its ``score_fn`` called once per start."""
+    batched = getattr(scorer, "batch_score_fn", None)
+    return batched(target) if batched is not None else batch_from_single(scorer.score_fn(target))
 
 
 @dataclass(frozen=True)
@@ -52,6 +71,11 @@ class Registration:
     normalization: Normalization | None = None
     n_source: int = 0
     n_target: int = 0
+    confidence: Confidence | None = None  # of ``transform``, unit frame
+    init: str = "identity"
+    initial_transform: Array = field(default_factory=lambda: np.eye(4))  # (4, 4) the agent's start, world units
+    start_index: int = 0  # global mode: which start rotation won
+    start_scores: list[float] = field(default_factory=list)  # global mode: each start's agent-only confidence
 
 
 def register(
@@ -64,12 +88,19 @@ def register(
     early_stop: bool = False,
     schedule: Sequence[int] | None = None,
     deadline: float | None = None,
+    init: str = "identity",
+    n_starts: int = DEFAULT_STARTS,
+    refine_top: int = DEFAULT_REFINE_TOP,
+    confidence_threshold: float = DEFAULT_THRESHOLD,
 ) -> Registration:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)`` (any units); returns ``T_target_source``.
 
-    Raises ``DegenerateCloudError`` (a ``ValueError``) for unusable input and ``AgentTimeout`` past
-    ``deadline`` (``time.monotonic()`` seconds).
+    ``init``: ``"identity"`` or ``"global"`` (``n_starts`` start rotations, the ``refine_top`` most
+    confident refined by ``icp``). Raises ``DegenerateCloudError`` (a ``ValueError``) for unusable
+    input and ``AgentTimeout`` past ``deadline`` (``time.monotonic()`` seconds).
     """
+    if init not in INITS:
+        raise ValueError(f"unknown init {init!r}; choose from {INITS}")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     # 1. Validate, normalise to the unit frame (one similarity for both clouds), resample to the model's N.
@@ -79,40 +110,58 @@ def register(
     src_unit, tgt_unit = norm.to_unit(src), norm.to_unit(tgt)
     src_n = resample(src_unit, scorer.n_points, rng)
     tgt_n = resample(tgt_unit, scorer.n_points, rng)
+    schedule = schedule or scorer.schedule
     t1 = time.perf_counter()
     timing["preprocess"] = (t1 - t0) * 1e3
-    # 2. Embed the target once for this registration.
-    score_fn = scorer.score_fn(tgt_n)
+    # 2. Embed the target once for this registration (tiled over the starts in global mode).
+    score_fn = scorer.score_fn(tgt_n) if init == "identity" else batch_score_fn(scorer, tgt_n)
     t2 = time.perf_counter()
     timing["target_embedding"] = (t2 - t1) * 1e3
-    # 3. The greedy action loop (20 coarse + 40 fine steps by default).
-    agent = run_agent(
-        src_n,
-        tgt_n,
-        score_fn,
-        scorer.table,
-        schedule or scorer.schedule,
-        policy=policy,
-        rng=rng,
-        early_stop=early_stop,
-        deadline=deadline,
-    )
+    # 3. The greedy action loop (20 coarse + 40 fine steps by default), from one start or from each start.
+    loop: dict = {"policy": policy, "rng": rng, "early_stop": early_stop, "deadline": deadline}
+    if init == "identity":
+        starts = np.eye(4)[None]  # (1, 4, 4)
+        agents = [run_agent(src_n, tgt_n, score_fn, scorer.table, schedule, **loop)]
+    else:
+        starts = start_transforms(start_rotations(n_starts), src_n.mean(axis=0), tgt_unit.mean(axis=0))  # (B, 4, 4)
+        agents = run_agent_batch(src_n, tgt_n, score_fn, scorer.table, starts, schedule, **loop)
     t3 = time.perf_counter()
     timing["agent_steps"] = (t3 - t2) * 1e3
-    # 4. Back to world units; optional ICP refinement on the full clouds (PRANet-v2).
-    agent_T = norm.transform_to_world(agent.transform)
-    result_T = agent_T
-    icp_world: IcpResult | None = None
-    if icp is not None:
-        refined = icp(src_unit, tgt_unit, agent.transform)
-        result_T = norm.transform_to_world(refined.transform)
-        icp_world = IcpResult(result_T, refined.fitness, refined.inlier_rmse / norm.scale)
-    timing["icp"] = (time.perf_counter() - t3) * 1e3
+    # 4. Global mode: rank the starts by a quick confidence of the agent's result; keep the best few.
+    estimator = ConfidenceEstimator(tgt_unit, threshold=confidence_threshold)
+    start_scores: list[float] = []
+    candidates = [0]
+    if init == "global":
+        ranker = ConfidenceEstimator(tgt_unit, max_target=RANK_TARGET, threshold=confidence_threshold)
+        start_scores = [ranker.evaluate(src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
+        order = np.argsort(-np.asarray(start_scores), kind="stable")
+        candidates = [int(b) for b in order[: max(1, refine_top) if icp is not None else 1]]
+    t4 = time.perf_counter()
+    # 5. Optional ICP refinement on the full clouds (PRANet-v2); the most confident candidate wins.
+    best: tuple[float, int, Array, IcpResult | None] | None = None
+    icp_ms = 0.0
+    for b in candidates:
+        t_icp = time.perf_counter()
+        refined = icp(src_unit, tgt_unit, agents[b].transform) if icp is not None else None
+        icp_ms += (time.perf_counter() - t_icp) * 1e3
+        T_unit = refined.transform if refined is not None else agents[b].transform
+        score = estimator.evaluate(src_unit, T_unit).score if len(candidates) > 1 else 0.0
+        if best is None or score > best[0]:
+            best = (score, b, T_unit, refined)
+    assert best is not None
+    _, b, T_unit, refined = best
+    timing["icp"] = icp_ms
+    confidence = estimator.evaluate(src_unit, T_unit)
+    timing["confidence"] = (time.perf_counter() - t4) * 1e3 - icp_ms
+    # 6. Back to world units.
+    agent = agents[b]
+    result_T = norm.transform_to_world(T_unit)
+    icp_world = IcpResult(result_T, refined.fitness, refined.inlier_rmse / norm.scale) if refined else None
     timing["total"] = (time.perf_counter() - t0) * 1e3
     trajectory = [(s.step, s.name, norm.transform_to_world(s.transform)) for s in agent.steps]
     return Registration(
         transform=result_T,
-        agent_transform=agent_T,
+        agent_transform=norm.transform_to_world(agent.transform),
         trajectory=trajectory,
         icp=icp_world,
         timing_ms=timing,
@@ -120,4 +169,9 @@ def register(
         normalization=norm,
         n_source=len(src),
         n_target=len(tgt),
+        confidence=confidence,
+        init=init,
+        initial_transform=norm.transform_to_world(starts[b]),
+        start_index=b,
+        start_scores=start_scores,
     )

@@ -1,0 +1,77 @@
+"""Start poses of the global mode: a fixed, well-spread set of rotations the agent starts from.
+
+The model was trained on rotations up to 60°, so an arbitrary initial rotation needs a start within
+reach of the answer. The 24 rotations of the octahedral group (the cube's symmetries) put every
+rotation within 62.8° of one of them; fewer starts are a farthest-point subset of the group (from the
+identity), more add farthest points of a fixed-seed Haar sample. The set is a pure function of ``n``.
+"""
+
+from __future__ import annotations
+
+import itertools
+from functools import lru_cache
+
+import numpy as np
+import numpy.typing as npt
+
+from pranet.core.sampling import sample_isotropic_rotations
+from pranet.core.se3 import Array, make_transform
+
+OCTAHEDRAL_ORDER = 24
+DEFAULT_STARTS = 24
+MAX_STARTS = 120
+_POOL = 4096  # Haar samples the starts beyond 24 are chosen from
+_POOL_SEED = 20220228
+
+
+def octahedral_group() -> Array:
+    """``(24, 3, 3)``: the signed permutation matrices with determinant +1, the identity first."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            R = np.zeros((3, 3))
+            R[range(3), perm] = signs
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return np.stack(out)
+
+
+def geodesic_distances(R: Array, Q: Array) -> Array:
+    """``R: (A, 3, 3)``, ``Q: (B, 3, 3)`` -> ``(A, B)`` rotation angles of ``R_a^T Q_b`` (radians)."""
+    trace = np.einsum("aij,bij->ab", R, Q)  # tr(R^T Q) = sum_ij R_ij Q_ij
+    return np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+
+
+def _farthest_points(pool: Array, chosen: list[int], n: int) -> list[int]:
+    d = geodesic_distances(pool, pool[chosen]).min(axis=1)  # (P,)
+    while len(chosen) < n:
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, geodesic_distances(pool, pool[i : i + 1])[:, 0])
+    return chosen
+
+
+@lru_cache(maxsize=16)
+def _start_rotations(n: int) -> Array:
+    group = octahedral_group()
+    if n == OCTAHEDRAL_ORDER:
+        return group
+    if n < OCTAHEDRAL_ORDER:
+        return group[_farthest_points(group, [0], n)]
+    pool = np.concatenate([group, sample_isotropic_rotations(np.random.default_rng(_POOL_SEED), np.pi, _POOL)])
+    return pool[_farthest_points(pool, list(range(OCTAHEDRAL_ORDER)), n)]
+
+
+def start_rotations(n: int = DEFAULT_STARTS) -> Array:
+    """``(n, 3, 3)`` well-spread rotations, the identity first; ``1 <= n <= MAX_STARTS``."""
+    if not 1 <= n <= MAX_STARTS:
+        raise ValueError(f"the number of starts must be in [1, {MAX_STARTS}], got {n}")
+    return _start_rotations(int(n)).copy()
+
+
+def start_transforms(rotations: npt.ArrayLike, source_centroid: npt.ArrayLike, target_centroid: npt.ArrayLike) -> Array:
+    """``(B, 4, 4)`` ``T_target_source`` starts: rotate the source about its centroid by each of
+    ``rotations: (B, 3, 3)`` and move that centroid onto the target's."""
+    m = np.asarray(source_centroid, dtype=np.float64)
+    c = np.asarray(target_centroid, dtype=np.float64)
+    return np.stack([make_transform(Q, c - Q @ m) for Q in np.asarray(rotations, dtype=np.float64)])

@@ -1,0 +1,53 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pranet.core.starts import (
+    MAX_STARTS,
+    geodesic_distances,
+    octahedral_group,
+    start_rotations,
+    start_transforms,
+)
+
+
+def test_octahedral_group_is_the_24_rotations_of_the_cube():
+    g = octahedral_group()
+    assert g.shape == (24, 3, 3)
+    np.testing.assert_array_equal(g[0], np.eye(3))
+    np.testing.assert_allclose(np.einsum("bij,bkj->bik", g, g), np.broadcast_to(np.eye(3), g.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(g), 1.0)
+    # closed under composition, all distinct
+    products = (g[:, None] @ g[None]).reshape(-1, 9).round(6)
+    assert len(np.unique(products, axis=0)) == 24
+    assert len(np.unique(g.reshape(-1, 9), axis=0)) == 24
+
+
+@pytest.mark.parametrize(("n", "covering_deg"), [(24, 63.0), (72, 54.0)])
+def test_starts_cover_so3(n, covering_deg):
+    """Every rotation is within ``covering_deg`` of a start (the group: 62.8°)."""
+    S = start_rotations(n)
+    assert S.shape == (n, 3, 3)
+    np.testing.assert_array_equal(S[0], np.eye(3))
+    probe = Rotation.random(5000, random_state=0).as_matrix()
+    assert np.degrees(geodesic_distances(probe, S).min(axis=1).max()) < covering_deg
+
+
+def test_fewer_starts_are_spread_and_deterministic():
+    S = start_rotations(6)
+    np.testing.assert_array_equal(S, start_rotations(6))
+    d = geodesic_distances(S, S) + np.eye(6) * 10
+    assert np.degrees(d.min()) >= 89.9  # 90° apart at least
+    with pytest.raises(ValueError):
+        start_rotations(0)
+    with pytest.raises(ValueError):
+        start_rotations(MAX_STARTS + 1)
+
+
+def test_start_transforms_rotate_about_the_source_centroid_onto_the_target_centroid():
+    R = start_rotations(4)
+    m, c = np.array([1.0, 2.0, 3.0]), np.array([-0.5, 0.0, 0.5])
+    T = start_transforms(R, m, c)
+    for Ti, Ri in zip(T, R, strict=True):
+        np.testing.assert_allclose(Ti[:3, :3], Ri)
+        np.testing.assert_allclose(Ti[:3, :3] @ m + Ti[:3, 3], c)

@@ -1,0 +1,70 @@
+"""A stand-in for the reward model in pipeline tests: exact rewards within reach of the answer.
+
+Imported by name (tests/ is on ``sys.path`` through its conftest). The trained model knows rotations up
+to 60°; ``RangeLimitedOracle`` gives the true rewards (``core.reward.true_rewards``) while the current
+rotation error is within ``reach_deg`` and all-negative rewards beyond (the agent then walks off with
+the first action), so tests of the global mode do not depend on a model's accuracy.
+
+It reads the current pose off the moved source by Kabsch: with ``n_points == len(source)`` the
+pipeline's resampling is a permutation, and the rows are matched by their distance to the centroid
+(unique for a random cloud, unchanged by rigid motion).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pranet.core.actions import DEFAULT_SCHEDULE, ActionTable, build_action_table
+from pranet.core.preprocess import fit_normalization
+from pranet.core.reward import true_rewards
+from pranet.core.se3 import rotation_angle
+
+
+class RangeLimitedOracle:
+    def __init__(
+        self,
+        source: np.ndarray,
+        target: np.ndarray,
+        T_target_source: np.ndarray,
+        reach_deg: float = 60.0,
+        table: ActionTable | None = None,
+    ):
+        self.table = table or build_action_table()
+        self.schedule = DEFAULT_SCHEDULE
+        self.n_points = len(source)
+        norm = fit_normalization(np.asarray(source, float), np.asarray(target, float))
+        src = norm.to_unit(source)  # (N, 3)
+        T = norm.transform_to_unit(T_target_source)
+        self.m = src.mean(axis=0)
+        self.ref = src[np.argsort(np.linalg.norm(src - self.m, axis=1))] - self.m  # (N, 3) centred, sorted
+        self.R_gt = T[:3, :3]
+        self.goal = self.R_gt @ self.m + T[:3, 3]  # where the source centroid must go
+        self.reach = np.deg2rad(reach_deg)
+        self.calls = 0
+        self.batch_calls: list[int] = []
+
+    def rewards(self, current: np.ndarray) -> np.ndarray:
+        """``current: (N, 3)``, the source in its current pose (unit frame) -> ``(A,)``."""
+        self.calls += 1
+        c = current.mean(axis=0)
+        cur = current[np.argsort(np.linalg.norm(current - c, axis=1))] - c
+        U, _, Vt = np.linalg.svd(self.ref.T @ cur)
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+        R_err = self.R_gt @ (Vt.T @ D @ U.T).T
+        if rotation_angle(R_err) > self.reach:
+            return -np.ones(len(self.table))
+        return true_rewards(R_err, self.goal - c, self.table)
+
+    def score_fn(self, target: np.ndarray):
+        return lambda source, _target: self.rewards(source)
+
+
+class BatchedRangeLimitedOracle(RangeLimitedOracle):
+    """The same, with a ``batch_score_fn`` (records the batch size of every call)."""
+
+    def batch_score_fn(self, target: np.ndarray):
+        def score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
+            self.batch_calls.append(len(sources))
+            return np.stack([self.rewards(s) for s in sources])
+
+        return score
