@@ -1,7 +1,7 @@
 """``pranet-client``: register two point cloud files through a running ``pranet-serve``.
 
     pranet-client register SOURCE TARGET [--url URL] [--api-key KEY] [--no-icp] [--json]
-                                         [--save-aligned OUT] [--plot OUT.png]
+                                         [--save-aligned OUT] [--plot OUT.png] [--init global]
     pranet-client health | ready | model [--url URL]
 
 The printed transform is ``T_target_source``: ``target ≈ R @ source + t``. Every failure (server
@@ -98,6 +98,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="agent steps per step-size scale, e.g. 20,40 (server default: the model's schedule; 0,0 = ICP only)",
     )
     reg.add_argument("--early-stop", action="store_true", default=None, help="stop the agent when it converges")
+    reg.add_argument(
+        "--init",
+        choices=("identity", "global"),
+        help="agent start: identity (server default; rotations up to 60°) or global (many starts, any rotation)",
+    )
+    reg.add_argument(
+        "--starts", type=int, metavar="N", help="number of start rotations with --init global (default 24)"
+    )
 
     for name, text in (
         ("health", "check that the service process is up (GET /health)"),
@@ -187,8 +195,9 @@ def plot_registration(
         ax.legend(loc="upper right", markerscale=6)
 
     final = result.transform
-    steps = list(range(len(result.trajectory) + 1))  # 0 = the input, i = after the agent's i-th step
-    transforms = [np.eye(4)] + [s.transform for s in result.trajectory]
+    steps = list(range(len(result.trajectory) + 1))  # 0 = the agent's start, i = after the agent's i-th step
+    start = result.initial_transform if result.initial_transform is not None else np.eye(4)
+    transforms = [start] + [s.transform for s in result.trajectory]
     angles = [rotation_angle_deg(final[:3, :3].T @ T[:3, :3]) for T in transforms]
     offsets = [float(np.linalg.norm(T[:3, 3] - final[:3, 3])) for T in transforms]
     for j, (values, label) in enumerate(
@@ -199,13 +208,15 @@ def plot_registration(
             ax.plot(steps, values, marker=".", lw=1)
         else:
             ax.text(0.5, 0.5, "no trajectory in the response", ha="center", va="center", transform=ax.transAxes)
-        ax.set_xlabel("agent steps taken (0 = input)")
+        ax.set_xlabel("agent steps taken (0 = the agent's start pose)")
         ax.set_ylabel(label)
         ax.grid(True, alpha=0.3)
     icp = result.icp or {}
     fig.suptitle(
         f"T_target_source: {rotation_angle_deg(final[:3, :3]):.2f} deg, |t| {np.linalg.norm(final[:3, 3]):.4g}"
         + (f"; ICP fitness {icp.get('fitness', 0.0):.3f}" if icp.get("applied") else "; no ICP")
+        + (f"; confidence {result.confidence:.3f}" if result.confidence is not None else "")
+        + (f" ({result.status})" if result.status else "")
     )
     fig.savefig(path, dpi=100)
     return path
@@ -225,6 +236,8 @@ def _register(args: argparse.Namespace, client: PranetClient) -> int:
         "steps": args.steps,
         "early_stop": args.early_stop,
         "return_trajectory": True if args.plot else None,
+        "init": args.init,
+        "starts": args.starts,
     }
     result = client.register(source, target, icp=args.icp, **options)
     if args.json:

@@ -67,8 +67,9 @@ class RegistrationResult:
     icp: dict[str, Any] | None  # {"applied", "fitness", "inlier_rmse"}
     timing_ms: dict[str, float]
     model: dict[str, Any]
-    confidence: float | None = None
-    status: str | None = None
+    confidence: float | None = None  # in [0, 1]: fraction of the source the target explains (see the API docs)
+    status: str | None = None  # "converged" | "suspect"
+    initial_transform: Array | None = None  # (4, 4) the agent's start pose (the identity unless init="global")
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -83,6 +84,8 @@ class RegistrationResult:
                 TrajectoryStep(int(s["step"]), str(s["action"]), np.asarray(s["transform"], dtype=np.float64))
                 for s in body.get("trajectory") or []
             ]
+            start = body.get("initial_transform")
+            initial = np.asarray(start, dtype=np.float64).reshape(4, 4) if start is not None else None
         except (KeyError, TypeError, ValueError) as e:
             raise PranetError(f"unexpected response from the service: {e}", detail=body) from e
         confidence = body.get("confidence")
@@ -96,6 +99,7 @@ class RegistrationResult:
             model=dict(body.get("model") or {}),
             confidence=float(confidence) if confidence is not None else None,
             status=body.get("status"),
+            initial_transform=initial,
             raw=body,
         )
 
@@ -220,7 +224,7 @@ class PranetClient:
         """Register ``source`` onto ``target``: arrays ``(N, 3)`` / ``(M, 3)`` or point cloud file paths.
 
         ``options`` are passed through to the service (``policy``, ``early_stop``, ``seed``, ``steps``,
-        ``return_trajectory``); ``None`` values are left out so the server's defaults apply.
+        ``return_trajectory``, ``init``, ``starts``); ``None`` values are left out so the server's defaults apply.
         """
         payload: dict[str, Any] = {
             "source": encode_cloud(load_cloud(source), self.compact_threshold),

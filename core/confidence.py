@@ -8,8 +8,7 @@ number here is unit-free. On fixed-seed subsamples of both clouds (at most ``max
   sampling density of the (subsampled) target;
 - ``tau = max(inlier_factor * spacing, min_tau)``: the inlier distance;
 - ``inlier_ratio``: the fraction of source points that, moved by ``T_target_source``, have a target
-  point within ``tau``; ``target_inlier_ratio``: the same from the target's side (on a target
-  subsample no larger than the source's);
+  point within ``tau``;
 - ``chamfer``: the symmetric mean nearest-neighbour distance between the moved source and the target.
 
 ``score`` (the response's ``confidence``, in [0, 1]) is ``inlier_ratio``: the fraction of the source
@@ -45,7 +44,6 @@ class Confidence:
     score: float  # in [0, 1]: inlier_ratio
     status: str  # "converged" | "suspect"
     inlier_ratio: float  # moved source points within tau of the target
-    target_inlier_ratio: float  # target points within tau of the moved source
     chamfer: float  # symmetric mean nearest-neighbour distance, unit frame
     tau: float  # inlier distance, unit frame
     spacing: float  # median nearest-neighbour distance within the target subsample, unit frame
@@ -110,7 +108,6 @@ class ConfidenceEstimator:
             score=ratio,
             status="converged" if ratio >= self.threshold else "suspect",
             inlier_ratio=ratio,
-            target_inlier_ratio=float(np.mean(d_target <= self.tau)),
             chamfer=float(d_source.mean() + d_target.mean()) / 2.0,
             tau=self.tau,
             spacing=self.spacing,

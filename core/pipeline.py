@@ -138,20 +138,19 @@ def register(
         candidates = [int(b) for b in order[: max(1, refine_top) if icp is not None else 1]]
     t4 = time.perf_counter()
     # 5. Optional ICP refinement on the full clouds (PRANet-v2); the most confident candidate wins.
-    best: tuple[float, int, Array, IcpResult | None] | None = None
+    best: tuple[Confidence, int, Array, IcpResult | None] | None = None
     icp_ms = 0.0
     for b in candidates:
         t_icp = time.perf_counter()
         refined = icp(src_unit, tgt_unit, agents[b].transform) if icp is not None else None
         icp_ms += (time.perf_counter() - t_icp) * 1e3
         T_unit = refined.transform if refined is not None else agents[b].transform
-        score = estimator.evaluate(src_unit, T_unit).score if len(candidates) > 1 else 0.0
-        if best is None or score > best[0]:
-            best = (score, b, T_unit, refined)
+        confidence = estimator.evaluate(src_unit, T_unit)
+        if best is None or confidence.score > best[0].score:
+            best = (confidence, b, T_unit, refined)
     assert best is not None
-    _, b, T_unit, refined = best
+    confidence, b, T_unit, refined = best
     timing["icp"] = icp_ms
-    confidence = estimator.evaluate(src_unit, T_unit)
     timing["confidence"] = (time.perf_counter() - t4) * 1e3 - icp_ms
     # 6. Back to world units.
     agent = agents[b]

@@ -124,6 +124,8 @@ def run_registration(
             early_stop=req.early_stop,
             schedule=schedule,
             deadline=deadline,
+            init=req.init,
+            n_starts=req.starts,
         )
     except DegenerateCloudError as e:
         raise RequestError(422, str(e)) from None
@@ -131,6 +133,8 @@ def run_registration(
         raise RequestError(504, f"{e} (server limit; ask for fewer steps or a smaller cloud)") from None
     # 3. Build the response, in the input units.
     T = result.transform
+    confidence = result.confidence
+    assert confidence is not None  # register computes it for every result
     timing = {"queue": queue_ms, "decode": decode_ms, **result.timing_ms}
     timing["total"] = (time.perf_counter() - t0) * 1e3
     return RegisterResponse(
@@ -149,4 +153,7 @@ def run_registration(
         model=ModelInfo(**model_info),
         n_source=result.n_source,
         n_target=result.n_target,
+        confidence=confidence.score,
+        status=confidence.status,
+        initial_transform=_matrix(result.initial_transform),
     )

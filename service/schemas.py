@@ -10,6 +10,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
 
+from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
+
 MAX_ABS_COORDINATE = 1e9  # input units; keeps every intermediate (centroids, SVD) far from overflow
 MAX_STEPS_PER_SCALE = 200
 ENCODING = "base64-float32-le"
@@ -88,6 +90,19 @@ class RegisterRequest(_Strict):
         examples=[[20, 40]],
     )
     return_trajectory: bool = Field(True, description="include the agent's transform after every step")
+    init: Literal["identity", "global"] = Field(
+        "identity",
+        description="where the agent starts: 'identity' (the input pose; the model knows rotations up to 60°) or "
+        "'global' (from `starts` well-spread rotations at once, for any initial rotation; the most confident "
+        "results are refined by ICP and the best is returned; about `starts` times the agent's work)",
+    )
+    starts: int = Field(
+        DEFAULT_STARTS,
+        ge=1,
+        le=MAX_STARTS,
+        description="init='global' only: number of start rotations (24 = the rotations of the cube, every rotation "
+        "within 63° of one)",
+    )
 
 
 class TrajectoryStep(BaseModel):
@@ -116,13 +131,24 @@ class RegisterResponse(BaseModel):
     icp: IcpInfo
     timing_ms: dict[str, float] = Field(
         description="milliseconds per stage: queue (waiting for a slot), decode, preprocess, target_embedding, "
-        "agent_steps, icp; total (decode to response, queue excluded)"
+        "agent_steps, icp, confidence; total (decode to response, queue excluded)"
     )
     model: ModelInfo
     n_source: int = Field(description="points received in source")
     n_target: int = Field(description="points received in target")
-    confidence: float | None = Field(None, description="reserved: confidence of the result")
-    status: str | None = Field(None, description="reserved: outcome of the registration")
+    confidence: float = Field(
+        ge=0.0,
+        le=1.0,
+        description="fraction of the source points that the result puts within one target sampling spacing of a "
+        "target point (subsampled; bounded by the overlap of the clouds)",
+    )
+    status: Literal["converged", "suspect"] = Field(
+        description="'converged' when confidence reaches the calibrated threshold, else 'suspect' (check the result)"
+    )
+    initial_transform: Matrix4 = Field(
+        description="the agent's start pose, T_target_source in input units: the identity, or with init='global' "
+        "the winning start (the trajectory begins there)"
+    )
 
 
 class HealthResponse(BaseModel):

@@ -155,3 +155,29 @@ def test_health_ready_model(fake_service, capsys) -> None:
     assert "model not loaded" in capsys.readouterr().err
     assert main(["model", "--url", fake_service.url]) == 0
     assert json.loads(capsys.readouterr().out) == {"name": "fake"}
+
+
+def test_global_mode_options_and_a_plot_with_the_confidence(fake_service, clouds, tmp_path: Path) -> None:
+    start = make_transform(90.0, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+    body = {
+        **canned_response(T_KNOWN, steps=4),
+        "confidence": 0.8,
+        "status": "converged",
+        "initial_transform": start.tolist(),
+    }
+    fake_service.routes[("POST", "/register")] = lambda _: (200, body)
+    plot = tmp_path / "plot.png"
+    args = ["register", *map(str, clouds), "--url", fake_service.url, "--init", "global", "--starts", "6"]
+    assert main([*args, "--plot", str(plot)]) == 0
+    sent = fake_service.requests[-1]["json"]
+    assert sent["init"] == "global" and sent["starts"] == 6
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_result_keeps_the_initial_transform() -> None:
+    from pranet.client.client import RegistrationResult
+
+    start = make_transform(90.0, (0.0, 0.0, 1.0), (1.0, 0.0, 0.0))
+    result = RegistrationResult.from_json({**canned_response(T_KNOWN), "initial_transform": start.tolist()})
+    assert_allclose(result.initial_transform, start)
+    assert RegistrationResult.from_json(canned_response(T_KNOWN)).initial_transform is None
