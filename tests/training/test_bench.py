@@ -1,0 +1,108 @@
+"""pranet-bench end to end at a tiny size: every method and section in the tables, finite numbers.
+
+Timings are not asserted (the machine is shared); only that the benchmark runs and reports them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d")
+pytest.importorskip("small_gicp")
+pytest.importorskip("httpx")
+
+from pranet.training import bench  # noqa: E402
+
+
+def _rows(text: str, section: str) -> list[list[str]]:
+    """Cells of the data rows of the markdown table under ``## section`` (header left out)."""
+    block = text.split(f"## {section}", 1)[1].split("\n## ", 1)[0]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in block.splitlines() if line.startswith("| ")]
+    return rows[1:]
+
+
+def _finite(cell: str) -> bool:
+    try:
+        return math.isfinite(float(cell))
+    except ValueError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def bench_run(data_root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    argv = [
+        "--pairs", "1",
+        "--settings", "noisy,partial",
+        "--steps", "2,2",
+        "--ort-calls", "11",
+        "--throughput-seconds", "1",
+        "--workers", "1",
+        "--clients", "2",
+        "--data-dir", str(data_root),
+        "--markdown", str(out / "bench.md"),
+        "--json", str(out / "bench.json"),
+        "--quiet",
+    ]  # fmt: skip
+    assert bench.main(argv) == 0
+    return (out / "bench.md").read_text(), json.loads((out / "bench.json").read_text()), argv
+
+
+def test_every_method_has_finite_latency_and_a_success_rate(bench_run):
+    text, doc, argv = bench_run
+    assert text.startswith("```\npranet-bench ") and "--pairs 1" in text.splitlines()[1]
+    rows = _rows(text, "Latency and success")
+    for setting in ("noisy", "partial"):
+        for method in bench.METHODS:
+            row = next(r for r in rows if r[0] == setting and r[1] == bench.LABELS[method])
+            assert row[2] == "1" and row[8] == "0", row  # one pair, no error
+            assert all(_finite(c) for c in row[3:6]), row  # median, p95, success %
+            s = doc["summary"][setting][method]
+            assert s["ms_median"] > 0 and 0.0 <= s["success"] <= 1.0
+    ratios = _rows(text, "Median latency relative to RANSAC+ICP and FGR+ICP")
+    assert {r[0] for r in ratios} == {bench.LABELS[m] for m in bench.METHODS}
+    assert all(_finite(c) for r in ratios for c in r[1:])
+    ransac = next(r for r in ratios if r[0] == bench.LABELS["ransac-icp"])
+    assert float(ransac[1]) == pytest.approx(1.0)
+
+
+def test_breakdown_flops_ort_int8_early_stop_and_throughput_are_reported(bench_run):
+    text, doc, _ = bench_run
+    breakdown = {r[0]: r[1:] for r in _rows(text, "Where a registration's time goes")}
+    for stage in ("preprocess", "target_embedding", "agent_steps", "icp", "total (client)"):
+        assert _finite(breakdown[stage][0]) and _finite(breakdown[stage][1]), stage
+    assert _finite(breakdown["HTTP/JSON overhead"][1]) and _finite(breakdown["decode"][1])
+    # The service returns what register() returns in-process for the same seed (clouds sent as float32).
+    assert doc["breakdown"]["noisy"]["http"]["max abs ΔT vs in-process"] < 1e-3
+
+    flops = doc["flops"]
+    assert flops["score_flops"] > 1e6 and 0 < flops["score_target_only_flops"] < flops["score_flops"]
+    assert all(_finite(c) for r in _rows(text, "Reward net") for c in r[1:4])
+    sgemm = _rows(text, "This CPU's sgemm")
+    assert {r[0] for r in sgemm} >= {"numpy float32 matmul"} and all(float(r[3]) > 0 for r in sgemm)
+
+    variants = {r[0]: r for r in _rows(text, "onnxruntime session options")}
+    assert len(variants) == len(bench.ORT_VARIANTS) and "int8" in variants
+    assert all(_finite(c) for r in variants.values() for c in r[1:5])
+
+    names = {r[1] for r in _rows(text, "Early stop and int8")}
+    assert names >= {"pranet-v1 early stop", "pranet-v2 early stop", "pranet-v1 int8", "pranet-v2 int8"}
+    drift = doc["int8_drift"]
+    assert drift["states"] == 2 * 4 and 0 <= drift["mean_abs"] <= drift["max_abs"] < 0.05
+    assert 0.0 <= drift["argmax_agreement"] <= 1.0
+
+    (tp,) = doc["throughput"]
+    assert tp["workers"] == 1 and tp["errors"] == 0 and tp["per_s"] >= 0
+
+
+def test_flop_count_of_a_known_matmul():
+    assert bench.node_flops("MatMul", [[1, 256, 64], [64, 128]], [[1, 256, 128]]) == 2 * 256 * 64 * 128
+    assert bench.node_flops("Gemm", [[1, 256], [128, 256]], [[1, 128]]) == 2 * 256 * 128
+    assert bench.node_flops("Relu", [[10]], [[10]]) == 0
+    assert bench.median([1.0, float("nan"), 3.0]) == 2.0 and np.isnan(bench.median([]))
+    assert re.fullmatch(r"\| a +\| b +\|\n\|-+\|-+\|\n\| 1 +\| x +\|", bench.md_table(["a", "b"], [[1.0, "x"]]))
