@@ -19,12 +19,13 @@ from starlette.middleware.cors import CORSMiddleware
 
 from pranet.service.middleware import ApiKeyMiddleware, BodySizeLimitMiddleware
 from pranet.service.registration import RequestError
-from pranet.service.routes import health, model, register
+from pranet.service.routes import health, model, register, viewer
 from pranet.service.schemas import ENCODING, RegisterRequest
 from pranet.service.settings import Settings
 from pranet.service.state import ServiceState
 
-OPEN_PATHS = ("/health",)
+OPEN_PATHS = ("/health", "/")  # no API key needed: liveness and the viewer page (it asks for the key)
+OPEN_PREFIXES = (viewer.STATIC_PREFIX + "/",)
 
 DESCRIPTION = f"""
 Point-cloud registration with PRANet (a learned agent of discrete rigid actions) and optional ICP.
@@ -109,15 +110,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         debug=False,
     )
     app.state.settings = settings
-    for router in (health.router, model.router, register.router):
+    for router in (health.router, model.router, register.router, viewer.router):
         app.include_router(router)
+    viewer.mount_static(app)
     app.add_exception_handler(RequestError, _request_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(Exception, _unexpected_error)
     # Middlewares: the last added runs first. Order on the way in: CORS -> API key -> body size.
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
     if settings.api_key:
-        app.add_middleware(ApiKeyMiddleware, api_key=settings.api_key, open_paths=OPEN_PATHS)
+        app.add_middleware(
+            ApiKeyMiddleware, api_key=settings.api_key, open_paths=OPEN_PATHS, open_prefixes=OPEN_PREFIXES
+        )
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,

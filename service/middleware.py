@@ -26,15 +26,28 @@ async def send_json(send: Send, status: int, detail: str, headers: Iterable[tupl
 
 
 class ApiKeyMiddleware:
-    """Every path but ``open_paths`` needs ``Authorization: Bearer <key>``; else 401."""
+    """Every path but ``open_paths`` (exact) and those under ``open_prefixes`` needs ``Authorization: Bearer
+    <key>``; else 401."""
 
-    def __init__(self, app: ASGIApp, api_key: str, open_paths: Iterable[str] = ("/health",)):
+    def __init__(
+        self,
+        app: ASGIApp,
+        api_key: str,
+        open_paths: Iterable[str] = ("/health",),
+        open_prefixes: Iterable[str] = (),
+    ):
         self.app = app
         self.expected = f"Bearer {api_key}".encode()
         self.open_paths = frozenset(open_paths)
+        self.open_prefixes = tuple(open_prefixes)
+
+    def _is_open(self, path: str) -> bool:
+        # Everything under an open prefix is routed to its static-files mount (even "/static/../register"),
+        # which serves only files inside its folder.
+        return path in self.open_paths or (bool(self.open_prefixes) and path.startswith(self.open_prefixes))
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["path"] in self.open_paths:
+        if scope["type"] != "http" or self._is_open(scope["path"]):
             await self.app(scope, receive, send)
             return
         given = dict(scope["headers"]).get(b"authorization", b"")
