@@ -16,8 +16,8 @@ that the target explains at the target's own sampling density. A tolerance of on
 separated results within and beyond 5° best among the candidates we tried (1, 1.5, 2, 3 spacings,
 a soft kernel, the Chamfer distance and the median distance; ModelNet40 noisy and partial pairs).
 It is bounded by the overlap: partial pairs score lower than complete ones even when aligned.
-``status`` is ``"converged"`` at ``score >= threshold``, else ``"suspect"``; ``DEFAULT_THRESHOLD`` was
-chosen on calibration pairs by ``scripts/confidence_eval.py``.
+``status`` is ``"converged"`` at ``score >= threshold``, else ``"suspect"``; ``scripts/confidence_eval.py``
+measures the flag and chooses the threshold on calibration pairs.
 """
 
 from __future__ import annotations
@@ -29,7 +29,11 @@ import numpy.typing as npt
 
 from pranet.core.se3 import Array, apply_transform
 
-DEFAULT_THRESHOLD = 0.35  # scripts/confidence_eval.py: chosen on calibration pairs (see docs in its output)
+# Best F1 of detecting > 5° failures on design data: noisy and partial pairs of the first 120 unseen ModelNet40
+# test shapes (pair seed 7), 5 estimates each (the true pose perturbed by 0-3° once and 0-40° thrice, and ICP
+# from the identity); chosen on half the estimates: precision 96 %, recall 89 % on the other half. Not yet
+# the shipped model's own results: re-choose it with scripts/confidence_eval.py for the trained model.
+DEFAULT_THRESHOLD = 0.39
 INLIER_FACTOR = 1.0  # tau in target spacings
 MIN_TAU = 1e-3  # unit frame: a floor for clouds with duplicated points
 MAX_SOURCE = 1024
