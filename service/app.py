@@ -35,6 +35,9 @@ in the units of the input clouds (which may be anything: m, mm, ...).
 
 **Clouds** are either nested lists `[[x, y, z], ...]` or the compact binary form
 `{{"encoding": "{ENCODING}", "data": "<base64 of N*3 little-endian float32>"}}`.
+
+Every answer carries a `confidence` in [0, 1] and a `status` (`converged` or `suspect`); `"init": "global"`
+handles any initial rotation. A web viewer is served at `/`.
 """
 
 
