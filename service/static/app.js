@@ -344,6 +344,12 @@ function fmt(x, digits = 4) {
   return Number(x).toPrecision(digits);
 }
 
+// Fixed decimals without "-0.000000" for tiny negative values.
+function fixed(x, digits) {
+  const s = Number(x).toFixed(digits);
+  return /^-0\.0*$/.test(s) ? s.slice(1) : s;
+}
+
 function showResult(r, roundTripMs) {
   state.result = r;
   const rot = rotationAngleAxis(r.transform);
@@ -351,7 +357,7 @@ function showResult(r, roundTripMs) {
   $("status-badge").textContent = r.status;
   $("status-badge").className = `badge ${r.status}`;
   $("confidence").textContent = `${r.confidence.toFixed(3)} (${r.status})`;
-  $("rotation").textContent = `${rot.deg.toFixed(2)}° about [${rot.axis.map((x) => x.toFixed(3)).join(", ")}]`;
+  $("rotation").textContent = `${rot.deg.toFixed(2)}° about [${rot.axis.map((x) => fixed(x, 3)).join(", ")}]`;
   $("translation").textContent = `[${t.map((x) => fmt(x)).join(", ")}] (|t| ${fmt(Math.hypot(...t))})`;
   $("icp").textContent = r.icp.applied
     ? `fitness ${fmt(r.icp.fitness, 3)}, inlier RMSE ${fmt(r.icp.inlier_rmse, 3)}`
@@ -359,7 +365,7 @@ function showResult(r, roundTripMs) {
   $("timing").textContent = `${Math.round(r.timing_ms.total)} ms on the server, ${Math.round(roundTripMs)} ms round trip`;
   $("model").textContent = `${r.model.name} ${r.model.version}`;
   $("transform").textContent = r.transform
-    .map((row) => row.map((x) => (x >= 0 ? " " : "") + x.toFixed(6)).join("  "))
+    .map((row) => row.map((x) => fixed(x, 6).padStart(9)).join("  "))
     .join("\n");
   $("result").hidden = false;
   // Frames: the input, the global mode's start, every agent step, the final transform (after ICP).
