@@ -123,6 +123,13 @@ rot_err = np.degrees(np.arccos(np.clip((np.trace(R.T @ T[:3, :3]) - 1) / 2, -1, 
 trans_err = np.linalg.norm(T[:3, 3] - t)
 print(f"[install-path] ICP only: {rot_err:.3f} deg, {trans_err:.4f} translation error")
 assert rot_err < 1.0 and trans_err < 0.01, icp["transform"]
+assert icp["status"] == "converged" and 0.0 <= icp["confidence"] <= 1.0, (icp["status"], icp["confidence"])
+
+# (c) The web viewer's page and files come from the wheel's package data.
+for path in ("/", "/static/app.js", "/static/parsers.js", "/static/style.css", "/static/vendor/three.min.js"):
+    with urllib.request.urlopen(url + path, timeout=30) as r:
+        assert r.status == 200 and len(r.read()) > 100, path
+print("[install-path] web viewer served from the wheel")
 PY
 then
     say "FAILED; pranet-serve log:"
