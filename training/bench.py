@@ -604,6 +604,16 @@ def summarize(records: Sequence[Record]) -> dict[str, Any]:
     }
 
 
+def as_float32(pair: Pair) -> Pair:
+    """The pair with both clouds rounded to float32, as the HTTP client sends them: every method, in-process or
+    over HTTP, then registers exactly the same numbers."""
+    return replace(
+        pair,
+        source=pair.source.astype(np.float32).astype(np.float64),
+        target=pair.target.astype(np.float32).astype(np.float64),
+    )
+
+
 def pair_seed(seed: int, setting: str, i: int) -> int:
     """One integer seed per pair, shared by every method (the service takes it as ``seed``): PRANet in-process
     and over HTTP resample the same points."""
@@ -627,6 +637,7 @@ def environment(threads: int) -> dict[str, Any]:
         "threads": threads,
         "load_avg_1m": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "nice": os.nice(0) if hasattr(os, "nice") else None,
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
         "python": platform.python_version(),
     }
     for dist in ("numpy", "onnxruntime", "open3d-cpu", "open3d", "small_gicp", "httpx", "uvicorn"):
@@ -681,6 +692,9 @@ def log(args: argparse.Namespace, msg: str) -> None:
 
 def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901 (one linear script)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))  # Open3D reads it at import
+    # OpenMP threads (Open3D, small_gicp) that busy-wait at barriers collapse when a core is taken by another
+    # process: small_gicp with 2 threads measured 800 ms instead of 4 ms per pair beside a training run.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from pranet.model.runtime import RewardModel, default_model_dir, read_card
     from pranet.training import baselines
     from pranet.training.data import data_dir, load_modelnet40, test_indices
@@ -691,7 +705,7 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
     data = load_modelnet40(data_dir(args.data_dir), "test")
     idx = test_indices(data.labels)[: args.pairs]
     pairs = {
-        s: [make_pair(data.points[j], s, pair_rng(args.seed, s, i), 60.0, 0.5) for i, j in enumerate(idx)]
+        s: [as_float32(make_pair(data.points[j], s, pair_rng(args.seed, s, i), 60.0, 0.5)) for i, j in enumerate(idx)]
         for s in args.settings
     }
     model_dir = Path(args.model) if args.model else default_model_dir()
@@ -913,7 +927,8 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
     out.append(
         f"Model: {model['name']} {model['version']} (sha256 {model['sha256'][:12]}, {model['dir']}). "
         f"CPU: {env['cpu']}, {env['cpu_count']} cores, {env['threads']} threads per method; load average at start "
-        f"{fmt(env.get('load_avg_1m'))}, nice {env.get('nice')}. onnxruntime {env.get('onnxruntime')}, "
+        f"{fmt(env.get('load_avg_1m'))}, nice {env.get('nice')}, OMP_WAIT_POLICY={env.get('OMP_WAIT_POLICY')}. "
+        f"onnxruntime {env.get('onnxruntime')}, "
         f"open3d {env.get('open3d-cpu') or env.get('open3d')}, small_gicp {env.get('small_gicp')}. "
         f"Wall time {result['wall_s']:.0f} s."
     )
