@@ -102,6 +102,21 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
     return cfg
 
 
+def same_run(a: dict, b: dict) -> bool:
+    """Two configs describe the same run up to the planned number of epochs and the thread count."""
+
+    def strip(d: dict) -> dict:
+        return {**d, "threads": None, "optim": {**d["optim"], "epochs": None}}
+
+    return strip(a) == strip(b)
+
+
+def retarget_schedule(sched: torch.optim.lr_scheduler.LRScheduler, cfg: TrainConfig) -> None:
+    """After changing the planned epochs on resume: the cosine schedule ends at the new last epoch."""
+    if isinstance(sched, torch.optim.lr_scheduler.CosineAnnealingLR):
+        sched.T_max = cfg.optim.epochs
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         prog="pranet-train", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -115,6 +130,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--limit", type=int, help="use only this many training shapes and validation samples (smoke runs)")
     p.add_argument("--data-dir", help="data root (default $PRANET_DATA_DIR or ../shared/data)")
     p.add_argument("--workers", type=int, default=1, help="data-loader worker processes")
+    p.add_argument(
+        "--threads", type=int, help="torch intra-op threads (overrides the config's; not part of the run identity)"
+    )
     p.add_argument("--stop-after", type=int, help="train at most this many epochs in this invocation (resume later)")
     p.add_argument("--no-progress", action="store_true")
     return p.parse_args(argv)
@@ -154,8 +172,9 @@ def main(argv: list[str] | None = None) -> int:
         print(cfg.to_json())
         return 0
     rank, world = setup_distributed()
-    if cfg.threads:
-        torch.set_num_threads(max(1, cfg.threads // world))
+    threads = args.threads or cfg.threads
+    if threads:
+        torch.set_num_threads(max(1, threads // world))
     out = args.out or Path("runs") / cfg.preset
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
@@ -175,11 +194,14 @@ def main(argv: list[str] | None = None) -> int:
     start_epoch, best, wall = 0, float("inf"), 0.0
     if args.resume and (out / "last.pt").exists():
         ck = torch.load(out / "last.pt", map_location="cpu", weights_only=False)
-        if ck["config"] != cfg.to_dict():
+        if not same_run(ck["config"], cfg.to_dict()):
             sys.exit(f"--resume: {out}/last.pt was trained with a different config; use another --out")
         net.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         sched.load_state_dict(ck["scheduler"])
+        if ck["config"]["optim"]["epochs"] != cfg.optim.epochs:
+            retarget_schedule(sched, cfg)
+            print(f"resume: schedule re-targeted from {ck['config']['optim']['epochs']} to {cfg.optim.epochs} epochs")
         start_epoch, best, wall = ck["epoch"] + 1, ck["best_val"], ck["wall_s"]
         if rank == 0:
             print(f"resumed from epoch {ck['epoch']} (val {ck['val_loss']:.5f}, {wall / 60:.1f} min so far)")

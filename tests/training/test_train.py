@@ -100,3 +100,13 @@ def test_ddp_two_processes(tmp_path, data_root):
     assert summary["world_size"] == 2
     rows = list(csv.DictReader(open(out / "log.csv")))
     assert len(rows) == 1 and int(rows[0]["samples"]) == 16  # 2 ranks x 2 batches x 4
+
+
+def test_resume_may_change_planned_epochs_and_threads_only():
+    from pranet.training.config import PRESETS, parse_override
+    from pranet.training.train import same_run
+
+    cfg = PRESETS["cpu"]
+    assert same_run(cfg.to_dict(), parse_override(parse_override(cfg, "optim.epochs=7"), "threads=1").to_dict())
+    assert not same_run(cfg.to_dict(), parse_override(cfg, "optim.lr=0.5").to_dict())
+    assert not same_run(cfg.to_dict(), parse_override(cfg, "net.k=8").to_dict())
