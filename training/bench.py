@@ -458,35 +458,37 @@ def ort_variants_table(
     source: Array,
     target: Array,
     calls: int,
-    rounds: int = 1,
+    per_round: int = 10,
 ) -> list[dict[str, Any]]:
     """ms per score call (= per agent step, minus the agent's own bookkeeping) and per target embedding, for
-    each variant: interleaved rounds of at most 5 calls per variant, ``calls`` in all; medians and minima."""
+    each variant, ``calls`` calls in all: in rounds of ``per_round`` calls per variant, the variants' order
+    rotated per round. Only one variant's sessions exist at a time (opened for its turn, then closed), as in a
+    service worker: idle thread pools of other sessions, spinning, would otherwise slow whichever runs next."""
+    import gc
+
     from pranet.model.runtime import RewardModel
 
-    models = []
+    variants = []
     for label, kw in ORT_VARIANTS:
         kw = {"threads": threads, **kw}
         if kw.get("precision") == "int8":
             if int8_dir is None:
                 continue
-            models.append((label, kw, RewardModel.load(int8_dir, **kw)))
+            variants.append((label, kw, int8_dir))
         else:
-            models.append((label, kw, RewardModel.load(model_dir, **kw)))
-    samples: dict[str, list[float]] = {label: [] for label, _, _ in models}
-    round_best: dict[str, list[float]] = {label: [] for label, _, _ in models}
-    round_median: dict[str, list[float]] = {label: [] for label, _, _ in models}
-    embed: dict[str, list[float]] = {label: [] for label, _, _ in models}
-    per_round = max(1, min(5, calls // rounds))
-    rounds = max(rounds, calls // per_round)  # many short rounds: a busy spell of the machine hits every variant
-    fns = {}
-    for label, _, m in models:
-        fns[label] = m.score_fn(target)
-        fns[label](source, target)  # first call: kNN graph, allocations
+            variants.append((label, kw, model_dir))
+    samples: dict[str, list[float]] = {label: [] for label, _, _ in variants}
+    round_best: dict[str, list[float]] = {label: [] for label, _, _ in variants}
+    round_median: dict[str, list[float]] = {label: [] for label, _, _ in variants}
+    embed: dict[str, list[float]] = {label: [] for label, _, _ in variants}
+    per_round = max(1, min(per_round, calls))
+    rounds = max(1, calls // per_round)
     for r in range(rounds):
-        k = r % len(models)
-        for label, _, m in models[k:] + models[:k]:  # rotated: no variant always runs first
-            f = fns[label]
+        k = r % len(variants)
+        for label, kw, where in variants[k:] + variants[:k]:  # rotated: no variant always runs first
+            model = RewardModel.load(where, **kw)
+            f = model.score_fn(target)
+            f(source, target)  # first call: kNN graph, allocations
             this_round = []
             for _ in range(per_round):
                 t0 = time.perf_counter()
@@ -496,9 +498,11 @@ def ort_variants_table(
             round_best[label].append(min(this_round))
             round_median[label].append(float(np.median(this_round)))
             t0 = time.perf_counter()
-            m.embed(target)
+            model.embed(target)
             embed[label].append((time.perf_counter() - t0) * 1e3)
-    default = models[0][0]
+            del f, model
+            gc.collect()  # close the sessions (and their thread pools) before the next variant
+    default = variants[0][0]
     return [
         {
             "variant": label,
@@ -507,12 +511,12 @@ def ort_variants_table(
             "score_min_ms": min(samples[label]),
             "score_p90_ms": quantile(samples[label], 0.9),
             "embed_ms": median(embed[label]),
-            # Paired: per round, this variant's best call over the default's best call in the same round.
+            # Paired: per round, this variant's best (median) call over the default's in the same round.
             "vs_default": median([a / b for a, b in zip(round_best[label], round_best[default], strict=True)]),
             "vs_default_busy": median([a / b for a, b in zip(round_median[label], round_median[default], strict=True)]),
             "calls": len(samples[label]),
         }
-        for label, kw, _ in models
+        for label, kw, _ in variants
     ]
 
 
@@ -1041,7 +1045,8 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
     if result.get("ort_variants"):
         out.append("\n## onnxruntime session options: ms per score call (one agent step)\n")
         out.append(
-            "Interleaved rounds (≤ 5 calls per variant each, variant order rotated) on one real state; `min` "
+            "Interleaved rounds (10 calls per variant each, variant order rotated, one variant's sessions open at a "
+            "time) on one real state; `min` "
             "approximates the cost on an idle machine. `× default (best)`: median over rounds of this variant's best "
             "call ÷ the default's best call in the same round (the idle-machine comparison); `× default (median)`: "
             "the same with each round's median (how it fares on a busy machine). `embed`: the target embedding "
