@@ -120,7 +120,7 @@ class RewardModel:
         execution: str = "sequential",
         arena: bool = True,
         mem_pattern: bool = True,
-        spinning: bool = True,
+        spinning: bool = False,
     ) -> RewardModel:
         """Open both graphs of ``precision`` in CPU sessions built by ``session_options`` (same arguments)."""
         model_dir = Path(model_dir) if model_dir else default_model_dir()
@@ -237,13 +237,15 @@ def session_options(
     execution: str = "sequential",
     arena: bool = True,
     mem_pattern: bool = True,
-    spinning: bool = True,
+    spinning: bool = False,
 ) -> Any:  # onnxruntime.SessionOptions
     """onnxruntime ``SessionOptions`` with explicit settings (the defaults are what the service uses).
 
     ``threads``: intra-op threads; ``optimization``: one of ``OPTIMIZATION_LEVELS``; ``execution``:
     ``sequential`` or ``parallel`` (then 2 inter-op threads); ``arena``/``mem_pattern``: the CPU memory
-    arena and the memory-pattern planner; ``spinning``: whether idle intra-op threads busy-wait.
+    arena and the memory-pattern planner; ``spinning``: whether idle intra-op threads busy-wait
+    (off by default: with another process on the cores it made a score call 4× slower at the median and saved
+    nothing at the best call; ``docs/PERFORMANCE.md``).
     """
     import onnxruntime as ort
 
