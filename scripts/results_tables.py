@@ -3,12 +3,13 @@
 The baselines and the PRANet rows can come from separate runs (the pairs are seeded by setting and
 index, so every run sees the same pairs); this refuses to merge runs whose pairs differ.
 
-    python scripts/results_tables.py results/baselines-noisy.json results/pranet-noisy.json
+    python scripts/results_tables.py results/baselines-noisy.json.gz results/pranet-noisy.json.gz
 """
 
 from __future__ import annotations
 
 import argparse
+import gzip
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -24,7 +25,7 @@ def main() -> None:
     args = p.parse_args()
     by_setting: dict[str, list[dict]] = defaultdict(list)
     for f in args.files:
-        doc = json.loads(f.read_text())
+        doc = json.loads(gzip.decompress(f.read_bytes()) if f.suffix == ".gz" else f.read_text())
         by_setting[doc["config"]["setting"]].append(doc)
     for setting, docs in by_setting.items():
         keys = {
