@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     from pranet.core.confidence import DEFAULT_THRESHOLD
     from pranet.model.runtime import RewardModel
     from pranet.training.data import data_dir, load_modelnet40, test_indices
-    from pranet.training.evaluate import _nan_to_none, pranet_runner
+    from pranet.training.evaluate import nan_to_none, pranet_runner
 
     settings = [s.strip() for s in args.settings.split(",") if s.strip()]
     data = load_modelnet40(data_dir(args.data_dir), "test")
@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
             "evaluation": {m: {k: v.tolist() for k, v in d.items()} for m, d in ev.items()},
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_nan_to_none(doc), indent=1))
+        args.json.write_text(json.dumps(nan_to_none(doc), indent=1))
         print(f"wrote {args.json}", file=sys.stderr)
     return 0
 

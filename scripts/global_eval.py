@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     from pranet.model.runtime import RewardModel
     from pranet.training import baselines
     from pranet.training.data import data_dir, load_modelnet40, test_indices
-    from pranet.training.evaluate import _nan_to_none, baseline_runner, evaluate, pranet_runner
+    from pranet.training.evaluate import baseline_runner, evaluate, nan_to_none, pranet_runner
 
     data = load_modelnet40(data_dir(args.data_dir), "test")
     idx = test_indices(data.labels)[: args.pairs]
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
             "records": result["records"],
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_nan_to_none(doc), indent=1))
+        args.json.write_text(json.dumps(nan_to_none(doc), indent=1))
         print(f"wrote {args.json}", file=sys.stderr)
     return 0
 

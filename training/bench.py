@@ -56,6 +56,7 @@ import numpy as np
 
 from pranet.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION, isotropic_errors
 from pranet.core.se3 import Array
+from pranet.training.evaluate import nan_to_none
 from pranet.training.samples import SETTINGS, Pair, make_pair, pair_rng
 
 METHODS = ("pranet-v1", "pranet-v2", "pranet-v2-http", "icp", "fgr-icp", "ransac-icp", "small-gicp")
@@ -1187,16 +1188,6 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def _nan_to_none(o: Any) -> Any:
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: _nan_to_none(v) for k, v in o.items()}
-    if isinstance(o, list | tuple):
-        return [_nan_to_none(v) for v in o]
-    return o
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     command = shlex.join(["pranet-bench", *(sys.argv[1:] if argv is None else argv)])
@@ -1212,7 +1203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         doc = json.loads(json.dumps(result, default=_json_default))  # records -> dicts first
-        args.json.write_text(json.dumps(_nan_to_none(doc), indent=1))
+        args.json.write_text(json.dumps(nan_to_none(doc), indent=1))
         log(args, f"wrote {args.json}")
     return 0
 

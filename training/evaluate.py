@@ -387,13 +387,14 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def _nan_to_none(o: Any) -> Any:
+def nan_to_none(o: Any) -> Any:
+    """``o`` with every non-finite float replaced by ``None`` (strict JSON)."""
     if isinstance(o, float) and not math.isfinite(o):
         return None
     if isinstance(o, dict):
-        return {k: _nan_to_none(v) for k, v in o.items()}
+        return {k: nan_to_none(v) for k, v in o.items()}
     if isinstance(o, list | tuple):
-        return [_nan_to_none(v) for v in o]
+        return [nan_to_none(v) for v in o]
     return o
 
 
@@ -547,7 +548,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "records": result["records"],
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_nan_to_none(doc), default=_json_default, indent=1))
+        args.json.write_text(json.dumps(nan_to_none(doc), default=_json_default, indent=1))
         print(f"pranet-eval: wrote {args.json}", file=sys.stderr)
     return 0
 

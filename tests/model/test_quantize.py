@@ -78,8 +78,7 @@ def test_sha256_check_covers_the_int8_graphs(int8_dir, tmp_path):
     (bad / "embed.int8.onnx").unlink()
     with pytest.raises(ModelLoadError, match="no int8 graphs"):
         RewardModel.load(bad, precision="int8")
-    with pytest.raises(ModelLoadError, match="no int8 graphs"):
-        RewardModel.load(default_model_dir(), precision="int8")  # the shipped directory has none
+    assert RewardModel.load(default_model_dir(), precision="int8").precision == "int8"  # shipped with int8 graphs
 
 
 def test_stale_int8_graphs_are_refused(int8_dir, tmp_path):
@@ -95,7 +94,7 @@ def test_stale_int8_graphs_are_refused(int8_dir, tmp_path):
         RewardModel.load(int8_dir, precision="fp16")
 
 
-def test_service_loads_the_precision_it_is_told(int8_dir, monkeypatch):
+def test_service_loads_the_precision_it_is_told(int8_dir, monkeypatch, tmp_path):
     pytest.importorskip("pydantic_settings")
     from pranet.service.settings import Settings
     from pranet.service.state import ServiceState
@@ -107,7 +106,10 @@ def test_service_loads_the_precision_it_is_told(int8_dir, monkeypatch):
     state = ServiceState(settings)
     state.load()
     assert state.model is not None and state.model.precision == "int8", state.model_error
-    monkeypatch.setenv("PRANET_MODEL_DIR", str(default_model_dir()))
+    fp32_only = tmp_path / "fp32"
+    shutil.copytree(int8_dir, fp32_only)
+    (fp32_only / "embed.int8.onnx").unlink()
+    monkeypatch.setenv("PRANET_MODEL_DIR", str(fp32_only))
     state = ServiceState(Settings())
     state.load()
     assert state.model is None and "no int8 graphs" in (state.model_error or "")
