@@ -7,7 +7,7 @@ import numpy as np
 from pranet.core.pipeline import IcpResult
 from pranet.core.se3 import Array
 
-DEFAULT_MAX_DISTANCE = 0.1  # unit frame (clouds scaled to the unit sphere); 0.05 vs 0.1 vs point-to-plane: docs/DESIGN.md
+DEFAULT_MAX_DISTANCE = 0.1  # unit frame (unit-sphere clouds); why 0.1: docs/DESIGN.md "ICP of PRANet-v2"
 DEFAULT_VOXEL = 0.01  # downsample larger clouds before ICP
 MAX_POINTS_BEFORE_VOXEL = 20000
 
