@@ -89,34 +89,20 @@ def run_agent(
     as no action of it has a positive predicted reward. ``deadline`` (``time.monotonic()`` seconds):
     raise ``AgentTimeout`` once it has passed, checked before every step.
     """
-    if len(schedule) != len(table.scales):
-        raise ValueError(f"schedule has {len(schedule)} phases but the action table has {len(table.scales)} scales")
-    source = np.asarray(source, dtype=np.float64)
-    target = np.asarray(target, dtype=np.float64)
-    m = source.mean(axis=0)
-    centered = source - m  # (N, 3)
     T0 = np.eye(4) if initial_transform is None else np.asarray(initial_transform, dtype=np.float64)
-    R = T0[:3, :3].copy()
-    c = T0[:3, :3] @ m + T0[:3, 3]  # where the source centroid is now
-    result = AgentResult(transform=T0.copy())
-    step = 0
-    for scale, n_steps in enumerate(schedule):
-        idx = table.indices_of_scale(scale)
-        for _ in range(n_steps):
-            if deadline is not None and time.monotonic() > deadline:
-                raise AgentTimeout(f"registration exceeded its time limit after {step} steps")
-            rewards = np.asarray(score_fn(centered @ R.T + c, target), dtype=np.float64)[idx]
-            if early_stop and rewards.max() <= 0.0:
-                result.stopped_early.append(step)
-                break
-            a = int(idx[choose_action(rewards, policy, rng)])
-            R = table.rotations[a] @ R  # rotation about the current centroid: c is unchanged
-            c = c + table.translations[a]
-            T = make_transform(R, c - R @ m)
-            result.steps.append(AgentStep(step, a, table.names[a], T, rewards))
-            step += 1
-    result.transform = make_transform(R, c - R @ m)
-    return result
+    # The batched loop with one start; the single score_fn is called once per step as before.
+    return run_agent_batch(
+        source,
+        target,
+        batch_from_single(score_fn),
+        table,
+        T0[None],
+        schedule,
+        policy=policy,
+        rng=rng,
+        early_stop=early_stop,
+        deadline=deadline,
+    )[0]
 
 
 def run_agent_batch(
