@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-# Agent steps for tests that check accuracy: a couple of fine steps exercise the agent without letting an
-# untrained placeholder model walk away from the answer; ICP then converges from there.
+# Agent steps for tests that check accuracy: a couple of fine steps exercise the agent without making the
+# test depend on how good the shipped model is; ICP then converges from there.
 FEW_STEPS = [0, 2]
 
 
