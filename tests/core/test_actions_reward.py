@@ -94,3 +94,22 @@ def test_point_rewards_agree_in_sign_with_se3_rewards_for_translations():
     assert (np.sign(r_l2[tr]) == np.sign(r_se3[tr])).mean() > 0.9
     r_mcd = point_rewards(P, np.eye(3), t, table, kind="mcd")
     assert np.argmax(r_mcd[table.indices_of_scale(0)]) == np.argmax(r_se3[table.indices_of_scale(0)])
+
+
+def test_mcd_rewards_match_brute_force_nearest_neighbours():
+    """The KD-tree MCD equals the symmetric mean squared nearest-neighbour distance computed densely."""
+    table = build_action_table()
+    rng = np.random.default_rng(5)
+    P = rng.standard_normal((150, 3)) * 0.3
+    R_err = Rotation.from_rotvec([0.2, -0.4, 0.1]).as_matrix()
+    t_err = np.array([0.05, 0.1, -0.2])
+    truth = P @ R_err.T + t_err
+
+    def mcd(points):
+        d2 = ((points[:, None, :] - truth[None]) ** 2).sum(-1)
+        return d2.min(1).mean() + d2.min(0).mean()
+
+    moved = np.einsum("aij,nj->ani", table.rotations, P) + table.translations[:, None, :]
+    expected = np.array([mcd(P) - mcd(m) for m in moved])
+    got = point_rewards(P, R_err, t_err, table, kind="mcd", normalize=False)
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
