@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import sys
 import time
@@ -112,9 +113,22 @@ def same_run(a: dict, b: dict) -> bool:
 
 
 def retarget_schedule(sched: torch.optim.lr_scheduler.LRScheduler, cfg: TrainConfig) -> None:
-    """After changing the planned epochs on resume: the cosine schedule ends at the new last epoch."""
+    """After changing the planned epochs on resume: the cosine schedule ends at the new last epoch.
+
+    The learning rate is set to the closed-form cosine value at the current epoch: torch's scheduler
+    steps recursively from the current rate, so changing ``T_max`` alone would leave a finished
+    schedule at its minimum for all the added epochs.
+    """
     if isinstance(sched, torch.optim.lr_scheduler.CosineAnnealingLR):
         sched.T_max = cfg.optim.epochs
+        e = min(sched.last_epoch, sched.T_max)
+        lrs = [
+            sched.eta_min + (base - sched.eta_min) * (1 + math.cos(math.pi * e / sched.T_max)) / 2
+            for base in sched.base_lrs
+        ]
+        for group, lr in zip(sched.optimizer.param_groups, lrs, strict=True):
+            group["lr"] = lr
+        sched._last_lr = lrs
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

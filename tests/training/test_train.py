@@ -110,3 +110,29 @@ def test_resume_may_change_planned_epochs_and_threads_only():
     assert same_run(cfg.to_dict(), parse_override(parse_override(cfg, "optim.epochs=7"), "threads=1").to_dict())
     assert not same_run(cfg.to_dict(), parse_override(cfg, "optim.lr=0.5").to_dict())
     assert not same_run(cfg.to_dict(), parse_override(cfg, "net.k=8").to_dict())
+
+
+def test_retargeted_cosine_continues_from_the_closed_form_rate():
+    """A finished 4-epoch cosine resumed for 8 in all restarts from the 8-epoch curve at epoch 4, then follows it."""
+    import math
+
+    import torch
+
+    from pranet.training.config import PRESETS, parse_override
+    from pranet.training.train import build_optimizer, retarget_schedule
+
+    cfg4 = parse_override(PRESETS["cpu"], "optim.epochs=4")
+    cfg8 = parse_override(PRESETS["cpu"], "optim.epochs=8")
+    net = torch.nn.Linear(2, 2)
+    opt, sched = build_optimizer(net, cfg4)
+    for _ in range(4):
+        opt.step()
+        sched.step()
+    lr, lo = cfg8.optim.lr, cfg8.optim.lr * 0.01
+    assert opt.param_groups[0]["lr"] == pytest.approx(lo, rel=1e-6)  # the 4-epoch schedule is spent
+    retarget_schedule(sched, cfg8)
+    for epoch in range(4, 8):
+        expected = lo + (lr - lo) * (1 + math.cos(math.pi * epoch / 8)) / 2
+        assert opt.param_groups[0]["lr"] == pytest.approx(expected, rel=1e-6)
+        opt.step()
+        sched.step()
