@@ -8,13 +8,18 @@ runs it from ``n_starts`` well-spread start rotations at once (``core.starts``; 
 per step), ranks the results by their confidence, refines the best ``refine_top`` with ICP and keeps
 the most confident: for initial rotations beyond the 60° the model was trained on. Every result
 carries a ``Confidence`` (``core.confidence``), computed in the unit frame.
+
+Beyond the paper, with ICP (identity mode): ``exit_checks`` refines the agent's estimate with ICP
+after those many steps and returns as soon as the refined result is confident (most pairs need only
+the coarse phase: ``docs/PERFORMANCE.md``); ``rescue_icp`` runs one wide-window ICP from the input
+pose when the agent's result stays unconfident, and keeps whichever is more confident.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -60,6 +65,28 @@ class IcpResult:
 IcpFn = Callable[[Array, Array, Array], IcpResult]
 
 
+def split_schedule(schedule: Sequence[int], checks: Sequence[int]) -> list[tuple[int, ...]]:
+    """Cut ``schedule`` (steps per scale) after each cumulative step count in ``checks``.
+
+    ``split_schedule((20, 40), (20, 40)) == [(20, 0), (0, 20), (0, 20)]``; checks outside
+    ``(0, sum(schedule))`` are ignored. Running the segments one after the other from the previous
+    segment's result takes the same steps as running ``schedule`` at once.
+    """
+    total = sum(schedule)
+    cuts = sorted({int(c) for c in checks if 0 < int(c) < total}) + [total]
+    segments: list[tuple[int, ...]] = []
+    done = 0
+    for cut in cuts:
+        seg, start = [], 0
+        for n in schedule:  # steps of each scale that fall in [done, cut)
+            lo, hi = max(start, done), min(start + n, cut)
+            seg.append(max(0, hi - lo))
+            start += n
+        segments.append(tuple(seg))
+        done = cut
+    return segments
+
+
 @dataclass
 class Registration:
     transform: Array  # (4, 4) T_target_source in world units: target ≈ R @ source + t
@@ -76,6 +103,8 @@ class Registration:
     initial_transform: Array = field(default_factory=lambda: np.eye(4))  # (4, 4) the agent's start, world units
     start_index: int = 0  # global mode: which start rotation won
     start_scores: list[float] = field(default_factory=list)  # global mode: each start's agent-only confidence
+    checks: list[tuple[int, float]] = field(default_factory=list)  # exit checks: (agent steps, ICP confidence)
+    rescued: bool = False  # the wide-window ICP from the input pose won over the agent's result
 
 
 def register(
@@ -92,12 +121,19 @@ def register(
     n_starts: int = DEFAULT_STARTS,
     refine_top: int = DEFAULT_REFINE_TOP,
     confidence_threshold: float = DEFAULT_THRESHOLD,
+    exit_checks: Sequence[int] = (),
+    rescue_icp: IcpFn | None = None,
 ) -> Registration:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)`` (any units); returns ``T_target_source``.
 
     ``init``: ``"identity"`` or ``"global"`` (``n_starts`` start rotations, the ``refine_top`` most
     confident refined by ``icp``). Raises ``DegenerateCloudError`` (a ``ValueError``) for unusable
     input and ``AgentTimeout`` past ``deadline`` (``time.monotonic()`` seconds).
+
+    ``exit_checks`` (identity mode with ``icp``): after each of these cumulative step counts, refine
+    with ``icp`` and stop once the confidence reaches ``confidence_threshold``; the most confident
+    refined estimate is returned. ``rescue_icp`` (with ``icp``): when the result is still below the
+    threshold, also refine the input pose by ``rescue_icp`` then ``icp``; the more confident wins.
     """
     if init not in INITS:
         raise ValueError(f"unknown init {init!r}; choose from {INITS}")
@@ -119,16 +155,42 @@ def register(
     timing["target_embedding"] = (t2 - t1) * 1e3
     # 3. The greedy action loop (20 coarse + 40 fine steps by default), from one start or from each start.
     loop: dict = {"policy": policy, "rng": rng, "early_stop": early_stop, "deadline": deadline}
-    if init == "identity":
+    estimator = ConfidenceEstimator(tgt_unit, threshold=confidence_threshold)
+    checked: list[tuple[Confidence, IcpResult]] = []  # exit checks' refined estimates, in step order
+    checks: list[tuple[int, float]] = []
+    check_ms = [0.0, 0.0]  # ICP, confidence
+    if init == "identity" and icp is not None and exit_checks:
+        starts = np.eye(4)[None]
+        agent = AgentResult(transform=np.eye(4))
+        segments = split_schedule(schedule, exit_checks)
+        for k, segment in enumerate(segments):
+            part = run_agent(src_n, tgt_n, score_fn, scorer.table, segment, initial_transform=agent.transform, **loop)
+            n = len(agent.steps)
+            agent.steps += [replace(s, step=s.step + n) for s in part.steps]
+            agent.stopped_early += [i + n for i in part.stopped_early]
+            agent.transform = part.transform
+            if k == len(segments) - 1:
+                break
+            t_icp = time.perf_counter()
+            refined = icp(src_unit, tgt_unit, agent.transform)
+            t_conf = time.perf_counter()
+            confidence = estimator.evaluate(src_unit, refined.transform)
+            check_ms[0] += (t_conf - t_icp) * 1e3
+            check_ms[1] += (time.perf_counter() - t_conf) * 1e3
+            checked.append((confidence, refined))
+            checks.append((len(agent.steps), confidence.score))
+            if confidence.score >= confidence_threshold:
+                break
+        agents = [agent]
+    elif init == "identity":
         starts = np.eye(4)[None]  # (1, 4, 4)
         agents = [run_agent(src_n, tgt_n, score_fn, scorer.table, schedule, **loop)]
     else:
         starts = start_transforms(start_rotations(n_starts), src_n.mean(axis=0), tgt_unit.mean(axis=0))  # (B, 4, 4)
         agents = run_agent_batch(src_n, tgt_n, score_fn, scorer.table, starts, schedule, **loop)
     t3 = time.perf_counter()
-    timing["agent_steps"] = (t3 - t2) * 1e3
+    timing["agent_steps"] = (t3 - t2) * 1e3 - sum(check_ms)
     # 4. Global mode: rank the starts by a quick confidence of the agent's result; keep the best few.
-    estimator = ConfidenceEstimator(tgt_unit, threshold=confidence_threshold)
     start_scores: list[float] = []
     candidates = [0]
     if init == "global":
@@ -137,9 +199,14 @@ def register(
         order = np.argsort(-np.asarray(start_scores), kind="stable")
         candidates = [int(b) for b in order[: max(1, refine_top) if icp is not None else 1]]
     # 5. Optional ICP refinement on the full clouds (PRANet-v2); the most confident candidate wins.
+    #    With exit checks, the last check (if it stopped the loop) is the final refinement already.
     best: tuple[Confidence, int, Array, IcpResult | None] | None = None
-    icp_ms = 0.0
-    for b in candidates:
+    for confidence, refined in checked:
+        if best is None or confidence.score > best[0].score:
+            best = (confidence, 0, refined.transform, refined)
+    icp_ms = check_ms[0]
+    stopped_at_check = bool(checks) and checks[-1][0] == len(agents[0].steps)
+    for b in [] if stopped_at_check else candidates:
         t_icp = time.perf_counter()
         refined = icp(src_unit, tgt_unit, agents[b].transform) if icp is not None else None
         icp_ms += (time.perf_counter() - t_icp) * 1e3
@@ -148,9 +215,17 @@ def register(
         if best is None or confidence.score > best[0].score:
             best = (confidence, b, T_unit, refined)
     assert best is not None
+    rescued = False
+    if rescue_icp is not None and icp is not None and best[0].score < confidence_threshold:
+        t_icp = time.perf_counter()
+        wide = icp(src_unit, tgt_unit, rescue_icp(src_unit, tgt_unit, np.eye(4)).transform)
+        icp_ms += (time.perf_counter() - t_icp) * 1e3
+        confidence = estimator.evaluate(src_unit, wide.transform)
+        if confidence.score > best[0].score:
+            best, rescued = (confidence, best[1], wide.transform, wide), True
     confidence, b, T_unit, refined = best
     timing["icp"] = icp_ms
-    timing["confidence"] = (time.perf_counter() - t3) * 1e3 - icp_ms  # ranking the starts included
+    timing["confidence"] = (time.perf_counter() - t3) * 1e3 - icp_ms + check_ms[1]  # ranking the starts included
     # 6. Back to world units.
     agent = agents[b]
     result_T = norm.transform_to_world(T_unit)
@@ -172,4 +247,6 @@ def register(
         initial_transform=norm.transform_to_world(starts[b]),
         start_index=b,
         start_scores=start_scores,
+        checks=checks,
+        rescued=rescued,
     )

@@ -75,3 +75,83 @@ def test_unknown_init_is_refused():
     src, tgt, T = rotated_problem(10.0)
     with pytest.raises(ValueError, match="init"):
         register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), init="random")
+
+
+def test_split_schedule_cuts_at_cumulative_steps():
+    from pranet.core.pipeline import split_schedule
+
+    assert split_schedule((20, 40), (20, 40)) == [(20, 0), (0, 20), (0, 20)]
+    assert split_schedule((20, 40), (10, 30)) == [(10, 0), (10, 10), (0, 30)]
+    assert split_schedule((20, 40), ()) == [(20, 40)]
+    assert split_schedule((20, 40), (0, 60, 99)) == [(20, 40)]  # nothing to cut
+    for checks in [(5,), (20,), (7, 33, 59), (1, 2, 3)]:
+        segments = split_schedule((20, 40), checks)
+        assert tuple(np.sum(segments, axis=0)) == (20, 40)
+
+
+def snapping_icp(T_unit_truth: np.ndarray, reach_deg: float):
+    """An ICP stand-in: lands exactly on the truth from within ``reach_deg``, else returns its start."""
+    from pranet.core.pipeline import IcpResult
+
+    def icp(source, target, init):
+        close = isotropic_errors(init, T_unit_truth)[0] < reach_deg
+        return IcpResult((T_unit_truth if close else init).copy(), 1.0 if close else 0.0, 0.0)
+
+    return icp
+
+
+def unit_truth(src, tgt, T):
+    from pranet.core.preprocess import fit_normalization
+
+    return fit_normalization(src, tgt).transform_to_unit(T)
+
+
+def test_exit_checks_without_an_exit_take_the_same_steps_as_one_run():
+    src, tgt, T = rotated_problem(40.0)
+    plain = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0))
+    never = lambda s, t, init: snapping_icp(np.eye(4), 0.0)(s, t, init)  # noqa: E731  (returns its start)
+    reg = register(
+        src,
+        tgt,
+        RangeLimitedOracle(src, tgt, T),
+        np.random.default_rng(0),
+        icp=never,
+        exit_checks=(20, 40),
+        confidence_threshold=1.01,
+    )
+    assert [s for s, _ in reg.checks] == [20, 40]
+    assert [n for _, n, _ in reg.trajectory] == [n for _, n, _ in plain.trajectory]
+    assert [s for s, _, _ in reg.trajectory] == list(range(60))
+    np.testing.assert_allclose(reg.agent_transform, plain.agent_transform, atol=1e-9)
+
+
+def test_exit_check_stops_the_agent_once_icp_is_confident():
+    src, tgt, T = rotated_problem(40.0)
+    oracle = RangeLimitedOracle(src, tgt, T)
+    reg = register(
+        src,
+        tgt,
+        oracle,
+        np.random.default_rng(0),
+        icp=snapping_icp(unit_truth(src, tgt, T), 10.0),
+        exit_checks=(20, 40),
+    )
+    assert oracle.calls == 20 and len(reg.trajectory) == 20  # the coarse phase only
+    assert reg.checks == [(20, pytest.approx(1.0))]
+    rot, trans = isotropic_errors(reg.transform, T)
+    assert rot < 1e-4 and trans < 1e-6
+    assert reg.confidence.status == "converged" and not reg.rescued
+
+
+def test_rescue_icp_wins_only_when_it_is_more_confident():
+    src, tgt, T = rotated_problem(150.0)  # out of the stand-in's reach: the agent fails, unconfidently
+    truth = unit_truth(src, tgt, T)
+    icp = snapping_icp(truth, 10.0)
+    wide_ok = lambda s, t, init: snapping_icp(truth, 180.0)(s, t, init)  # noqa: E731
+    reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_ok)
+    assert reg.rescued and isotropic_errors(reg.transform, T)[0] < 1e-4
+    assert reg.confidence.status == "converged"
+    wide_bad = lambda s, t, init: snapping_icp(truth, 0.0)(s, t, init)  # noqa: E731  (stays at the input pose)
+    reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_bad)
+    assert isotropic_errors(reg.transform, T)[0] > 30.0
+    assert reg.confidence.status == "suspect"
