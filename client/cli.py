@@ -98,6 +98,27 @@ def build_parser() -> argparse.ArgumentParser:
         help="agent steps per step-size scale, e.g. 20,40 (server default: the model's schedule; 0,0 = ICP only)",
     )
     reg.add_argument("--early-stop", action="store_true", default=None, help="stop the agent when it converges")
+    checks = reg.add_mutually_exclusive_group()
+    checks.add_argument(
+        "--exit-checks",
+        type=_step_counts,
+        metavar="N[,N...]",
+        help="ICP after these many agent steps; stop once converged (server default: 20,40)",
+    )
+    checks.add_argument(
+        "--all-steps",
+        dest="exit_checks",
+        action="store_const",
+        const=[],
+        help="no exit checks: run every agent step, then ICP (the paper's PRANet-v2)",
+    )
+    reg.add_argument(
+        "--no-rescue",
+        dest="rescue",
+        action="store_false",
+        default=None,
+        help="do not try a wide-window ICP from the input pose when the result is suspect",
+    )
     reg.add_argument(
         "--init",
         choices=("identity", "global"),
@@ -235,6 +256,8 @@ def _register(args: argparse.Namespace, client: PranetClient) -> int:
         "seed": args.seed,
         "steps": args.steps,
         "early_stop": args.early_stop,
+        "exit_checks": args.exit_checks,
+        "rescue": args.rescue,
         "return_trajectory": True if args.plot else None,
         "init": args.init,
         "starts": args.starts,

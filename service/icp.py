@@ -8,6 +8,8 @@ from pranet.core.pipeline import IcpResult
 from pranet.core.se3 import Array
 
 DEFAULT_MAX_DISTANCE = 0.1  # unit frame (unit-sphere clouds); why 0.1: docs/DESIGN.md "ICP of PRANet-v2"
+# The rescue of unconfident results: ICP from the input pose with a wide window (that of the ICP baseline).
+RESCUE_MAX_DISTANCE = 0.5
 DEFAULT_VOXEL = 0.01  # downsample larger clouds before ICP
 MAX_POINTS_BEFORE_VOXEL = 20000
 

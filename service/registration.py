@@ -18,6 +18,7 @@ from pranet.core.preprocess import DegenerateCloudError
 from pranet.service.schemas import (
     MAX_ABS_COORDINATE,
     EncodedCloud,
+    ExitCheck,
     IcpInfo,
     ModelInfo,
     RegisterRequest,
@@ -89,11 +90,13 @@ def run_registration(
     max_points: int,
     deadline: float,
     admitted_at: float | None = None,
+    rescue_icp: IcpFn | None = None,
 ) -> RegisterResponse:
     """Parse ``body`` (JSON bytes), register, and build the response.
 
     ``deadline``: ``time.monotonic()`` seconds; ``admitted_at``: ``time.perf_counter()`` when the request
-    was admitted (its wait for a free slot is reported as ``timing_ms["queue"]``).
+    was admitted (its wait for a free slot is reported as ``timing_ms["queue"]``). ``rescue_icp``: the
+    wide-window ICP a request with ``rescue`` runs when the result stays unconfident.
     """
     t0 = time.perf_counter()
     queue_ms = (t0 - admitted_at) * 1e3 if admitted_at is not None else 0.0
@@ -126,6 +129,8 @@ def run_registration(
             deadline=deadline,
             init=req.init,
             n_starts=req.starts,
+            exit_checks=req.exit_checks if req.icp and req.init == "identity" else (),
+            rescue_icp=rescue_icp if req.icp and req.rescue else None,
         )
     except DegenerateCloudError as e:
         raise RequestError(422, str(e)) from None
@@ -156,4 +161,6 @@ def run_registration(
         confidence=confidence.score,
         status=confidence.status,
         initial_transform=_matrix(result.initial_transform),
+        exit_checks=[ExitCheck(step=step, confidence=score) for step, score in result.checks],
+        rescued=result.rescued,
     )

@@ -89,6 +89,19 @@ class RegisterRequest(_Strict):
         ),
         examples=[[20, 40]],
     )
+    exit_checks: list[Annotated[int, Field(ge=1, le=8 * MAX_STEPS_PER_SCALE)]] = Field(
+        [20, 40],
+        max_length=16,
+        description="with icp: after these many agent steps (cumulative), refine with ICP and return at once if the "
+        "result is 'converged' (most pairs need only the 20 coarse steps); [] = always run every step (the paper's "
+        "PRANet-v2)",
+        examples=[[20, 40], []],
+    )
+    rescue: bool = Field(
+        True,
+        description="with icp: when the result is still 'suspect', also run a wide-window ICP from the input pose and "
+        "keep the more confident of the two",
+    )
     return_trajectory: bool = Field(True, description="include the agent's transform after every step")
     init: Literal["identity", "global"] = Field(
         "identity",
@@ -115,6 +128,11 @@ class IcpInfo(BaseModel):
     applied: bool = Field(description="whether ICP refined the agent's estimate")
     fitness: float | None = Field(description="fraction of source points with a target match within the ICP radius")
     inlier_rmse: float | None = Field(description="RMS distance of the inlier matches, input units")
+
+
+class ExitCheck(BaseModel):
+    step: int = Field(description="agent steps taken before this check")
+    confidence: float = Field(description="confidence of the ICP-refined estimate at this check")
 
 
 class ModelInfo(BaseModel):
@@ -149,6 +167,10 @@ class RegisterResponse(BaseModel):
         description="the agent's start pose, T_target_source in input units: the identity, or with init='global' "
         "the winning start (the trajectory begins there)"
     )
+    exit_checks: list[ExitCheck] = Field(
+        default_factory=list, description="the exit checks that ran, in order; the agent stopped after a converged one"
+    )
+    rescued: bool = Field(False, description="the wide-window ICP from the input pose won over the agent's result")
 
 
 class HealthResponse(BaseModel):

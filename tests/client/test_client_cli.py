@@ -113,6 +113,18 @@ def test_options_are_sent(fake_service, clouds) -> None:
     }
 
 
+def test_exit_check_and_rescue_options(fake_service, clouds) -> None:
+    fake_service.routes[("POST", "/register")] = lambda body: (200, canned_response(T_KNOWN))
+    base = ["register", *map(str, clouds), "--url", fake_service.url]
+    assert main(base) == 0
+    assert not {"exit_checks", "rescue"} & set(fake_service.requests[-1]["json"])  # the server's defaults
+    assert main([*base, "--exit-checks", "10,30", "--no-rescue"]) == 0
+    sent = fake_service.requests[-1]["json"]
+    assert sent["exit_checks"] == [10, 30] and sent["rescue"] is False
+    assert main([*base, "--all-steps"]) == 0
+    assert fake_service.requests[-1]["json"]["exit_checks"] == []
+
+
 def test_json_output_is_the_raw_response(fake_service, clouds, capsys) -> None:
     body = {**canned_response(T_KNOWN), "confidence": 0.5, "status": "converged"}
     fake_service.routes[("POST", "/register")] = lambda _: (200, body)

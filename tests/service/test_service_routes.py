@@ -10,6 +10,7 @@ import httpx
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
+from scipy.spatial.transform import Rotation
 from service_helpers import FEW_STEPS, b64, rotation_error_deg, synthetic_pair
 
 
@@ -240,3 +241,33 @@ def test_unexpected_errors_are_a_generic_500_without_traceback() -> None:
         r = client.get("/boom")
     assert r.status_code == 500
     assert r.json() == {"detail": "internal server error"}
+
+
+def test_exit_checks_stop_the_agent_once_icp_converges(http: httpx.Client) -> None:
+    """Default request: ICP + confidence after 20 and 40 steps; a 5° pair converges at the first check."""
+    source, target, T_gt = synthetic_pair(n=400)
+    fast = http.post("/register", json={"source": b64(source), "target": b64(target)}).json()
+    assert fast["exit_checks"][0]["step"] == 20 and fast["exit_checks"][-1]["confidence"] >= 0.55
+    assert len(fast["trajectory"]) == fast["exit_checks"][-1]["step"] < 60
+    assert fast["status"] == "converged" and fast["rescued"] is False
+    assert rotation_error_deg(np.array(fast["rotation"]), T_gt[:3, :3]) < 0.05
+    full = http.post("/register", json={"source": b64(source), "target": b64(target), "exit_checks": []}).json()
+    assert full["exit_checks"] == [] and len(full["trajectory"]) == 60  # the paper's PRANet-v2
+    assert rotation_error_deg(np.array(full["rotation"]), T_gt[:3, :3]) < 0.05
+
+
+def test_rescue_recovers_what_a_narrow_icp_misses(http: httpx.Client) -> None:
+    """No agent steps and a 0.4 offset: ICP in its 0.1 window stays put; the wide-window rescue from the input pose
+    lands on the truth and is kept because it is more confident."""
+    rng = np.random.default_rng(0)
+    source = rng.uniform(-1, 1, size=(600, 3)) * [1.0, 0.5, 0.25]
+    R = Rotation.from_rotvec(np.deg2rad(10.0) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)).as_matrix()
+    t = np.array([0.4, -0.2, 0.1])
+    target = source @ R.T + t
+    body = {"source": b64(source), "target": b64(target), "steps": [0, 0]}
+    plain = http.post("/register", json={**body, "rescue": False}).json()
+    assert plain["status"] == "suspect" and rotation_error_deg(np.array(plain["rotation"]), R) > 5.0
+    rescued = http.post("/register", json=body).json()
+    assert rescued["rescued"] is True and rescued["status"] == "converged"
+    assert rotation_error_deg(np.array(rescued["rotation"]), R) < 0.05
+    assert_allclose(rescued["translation"], t, atol=1e-3)
