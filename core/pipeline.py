@@ -34,7 +34,9 @@ from pranet.core.starts import DEFAULT_STARTS, start_rotations, start_transforms
 
 INITS = ("identity", "global")
 DEFAULT_REFINE_TOP = 3  # global mode: starts refined by ICP, best first by their agent-only confidence
-RANK_SOURCE, RANK_TARGET = 256, 1024  # subsample sizes of the quick confidence that ranks the starts
+RANK_SOURCE, RANK_TARGET = 256, 1024
+# The service's exit checks: ICP + confidence after the coarse phase and halfway through the fine one.
+DEFAULT_EXIT_CHECKS = (20, 40)  # subsample sizes of the quick confidence that ranks the starts
 
 
 class Scorer(Protocol):

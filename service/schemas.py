@@ -10,6 +10,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
 
+from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
 
 MAX_ABS_COORDINATE = 1e9  # input units; keeps every intermediate (centroids, SVD) far from overflow
@@ -90,7 +91,7 @@ class RegisterRequest(_Strict):
         examples=[[20, 40]],
     )
     exit_checks: list[Annotated[int, Field(ge=1, le=8 * MAX_STEPS_PER_SCALE)]] = Field(
-        [20, 40],
+        list(DEFAULT_EXIT_CHECKS),
         max_length=16,
         description="with icp: after these many agent steps (cumulative), refine with ICP and return at once if the "
         "result is 'converged' (most pairs need only the 20 coarse steps); [] = always run every step (the paper's "

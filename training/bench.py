@@ -59,7 +59,19 @@ from pranet.core.se3 import Array
 from pranet.training.evaluate import nan_to_none
 from pranet.training.samples import SETTINGS, Pair, make_pair, pair_rng
 
-METHODS = ("pranet-v1", "pranet-v2", "pranet-v2-http", "icp", "fgr-icp", "ransac-icp", "small-gicp")
+METHODS = (
+    "pranet-v1",
+    "pranet-v2",
+    "pranet-v2-http",
+    "pranet-adaptive",
+    "pranet-adaptive-http",
+    "icp",
+    "fgr-icp",
+    "ransac-icp",
+    "small-gicp",
+)
+# (in-process, HTTP) method pairs whose time is broken down by stage
+BREAKDOWN_PAIRS = (("pranet-v2", "pranet-v2-http"), ("pranet-adaptive", "pranet-adaptive-http"))
 PRANET_IN_PROCESS = ("pranet-v1", "pranet-v2")
 REFERENCES = ("ransac-icp", "fgr-icp")  # latency ratios are taken against these
 DEFAULT_SETTINGS = ("noisy", "partial")
@@ -134,13 +146,31 @@ def small_gicp_align(
     return np.asarray(r.T_target_source, dtype=np.float64).copy()
 
 
-def pranet_method(scorer: Any, icp: Any, early_stop: bool = False, schedule: Sequence[int] | None = None) -> MethodFn:
+def pranet_method(
+    scorer: Any,
+    icp: Any,
+    early_stop: bool = False,
+    schedule: Sequence[int] | None = None,
+    exit_checks: Sequence[int] = (),
+    rescue_icp: Any = None,
+) -> MethodFn:
+    """PRANet in-process; ``exit_checks``/``rescue_icp`` as in ``core.pipeline.register`` (the adaptive variant)."""
     from pranet.core.pipeline import register
 
     def run(pair: Pair, seed: int) -> Outcome:
         t0 = time.perf_counter()
         rng = np.random.default_rng(seed)
-        reg = register(pair.source, pair.target, scorer, rng, icp=icp, early_stop=early_stop, schedule=schedule)
+        reg = register(
+            pair.source,
+            pair.target,
+            scorer,
+            rng,
+            icp=icp,
+            early_stop=early_stop,
+            schedule=schedule,
+            exit_checks=exit_checks,
+            rescue_icp=rescue_icp,
+        )
         ms = (time.perf_counter() - t0) * 1e3
         extra = {"timing_ms": reg.timing_ms, "n_steps": len(reg.trajectory), "agent_transform": reg.agent_transform}
         return Outcome(reg.transform, ms, extra)
@@ -163,31 +193,39 @@ def encode_cloud(points: Array) -> dict[str, str]:
     return {"encoding": ENCODING, "data": base64.b64encode(data).decode("ascii")}
 
 
-def request_body(pair: Pair, seed: int, icp: bool = True, steps: Sequence[int] | None = None) -> bytes:
+def request_body(
+    pair: Pair, seed: int, icp: bool = True, steps: Sequence[int] | None = None, adaptive: bool = False
+) -> bytes:
+    """``adaptive``: the service's default exit checks and rescue; else every step, no rescue (the paper's v2)."""
+    from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
+
     body: dict[str, Any] = {
         "source": encode_cloud(pair.source),
         "target": encode_cloud(pair.target),
         "icp": icp,
         "seed": seed,
         "return_trajectory": False,
+        "exit_checks": list(DEFAULT_EXIT_CHECKS) if adaptive else [],
+        "rescue": adaptive,
     }
     if steps is not None:
         body["steps"] = list(steps)
     return json.dumps(body).encode()
 
 
-def http_method(client: Any, steps: Sequence[int] | None = None) -> MethodFn:
-    """``pranet-v2`` over HTTP; the latency is the client's: encoding, request, response parsing."""
+def http_method(client: Any, steps: Sequence[int] | None = None, adaptive: bool = False) -> MethodFn:
+    """``pranet-v2`` (or the adaptive variant) over HTTP; the latency is the client's: encoding, request, parsing."""
 
     def run(pair: Pair, seed: int) -> Outcome:
         t0 = time.perf_counter()
-        body = request_body(pair, seed, steps=steps)
+        body = request_body(pair, seed, steps=steps, adaptive=adaptive)
         r = client.post("/register", content=body, headers={"Content-Type": "application/json"})
         if r.status_code != 200:
             raise RuntimeError(f"HTTP {r.status_code}: {r.text[:300]}")
         data = r.json()
         ms = (time.perf_counter() - t0) * 1e3
-        return Outcome(np.asarray(data["transform"], dtype=np.float64), ms, {"server_timing_ms": data["timing_ms"]})
+        extra = {"server_timing_ms": data["timing_ms"], "exit_checks": data.get("exit_checks", [])}
+        return Outcome(np.asarray(data["transform"], dtype=np.float64), ms, extra)
 
     return run
 
@@ -717,9 +755,11 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
     scorer = RewardModel.load(model_dir, threads=args.threads)
     result["model"] = {**scorer.info(), "dir": str(args.model or "default (shipped)")}
     result["model_schedule"] = list(scorer.schedule)
-    from pranet.service.icp import make_icp
+    from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
+    from pranet.service.icp import RESCUE_MAX_DISTANCE, make_icp
 
     icp = make_icp()
+    rescue_icp = make_icp(max_distance=RESCUE_MAX_DISTANCE)
     tmp = Path(tempfile.mkdtemp(prefix="pranet-bench-"))
     try:
         # int8 graphs: the model directory's own, else quantized now into a temporary copy.
@@ -741,6 +781,9 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
         fns: dict[str, MethodFn] = {
             "pranet-v1": pranet_method(scorer, None, schedule=args.steps),
             "pranet-v2": pranet_method(scorer, icp, schedule=args.steps),
+            "pranet-adaptive": pranet_method(
+                scorer, icp, schedule=args.steps, exit_checks=DEFAULT_EXIT_CHECKS, rescue_icp=rescue_icp
+            ),
             "icp": baseline_method(baselines.icp),
             "fgr-icp": baseline_method(baselines.fgr_icp),
             "ransac-icp": baseline_method(baselines.ransac_icp),
@@ -764,6 +807,8 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
             client = httpx.Client(base_url=url, timeout=120.0)
             if "pranet-v2-http" in args.methods:
                 fns["pranet-v2-http"] = http_method(client, args.steps)
+            if "pranet-adaptive-http" in args.methods:
+                fns["pranet-adaptive-http"] = http_method(client, args.steps, adaptive=True)
             order = [m for m in args.methods if m in fns] + list(extra_fns)
             allfns = {**fns, **extra_fns}
             warm = pairs[args.settings[0]][0]
@@ -826,8 +871,8 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
             )
         if args.throughput_seconds > 0:
             result["throughput"] = []
-            bodies = [
-                request_body(p, pair_seed(args.seed, args.settings[0], i), steps=args.steps)
+            bodies = [  # the service's default request: exit checks and rescue
+                request_body(p, pair_seed(args.seed, args.settings[0], i), steps=args.steps, adaptive=True)
                 for i, p in enumerate(pairs[args.settings[0]][:8])
             ]
             for w in args.workers:
@@ -919,6 +964,8 @@ LABELS = {
     "pranet-v1": "PRANet-v1 (agent, in-process)",
     "pranet-v2": "PRANet-v2 (agent + ICP, in-process)",
     "pranet-v2-http": "PRANet-v2 over HTTP (client side)",
+    "pranet-adaptive": "PRANet adaptive (v2 + exit checks 20/40 + rescue, in-process)",
+    "pranet-adaptive-http": "PRANet adaptive over HTTP (client side; the service's default)",
     "icp": "Open3D ICP (from identity)",
     "fgr-icp": "FGR + ICP",
     "ransac-icp": "RANSAC + ICP",
@@ -983,12 +1030,15 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
             rows.append(row)
         out.append(md_table(head, rows))
 
-    if "breakdown" in result:
-        out.append("\n## Where a registration's time goes (PRANet-v2, medians over pairs, ms)\n")
+    for variant, table in result.get("breakdown", {}).items():
+        in_method = variant.split(" / ")[0]
+        name = LABELS.get(in_method, in_method)
+        out.append(f"\n## Where a registration's time goes ({name}, medians over pairs, ms)\n")
         out.append(
             "In-process: `Registration.timing_ms` of `core.pipeline.register`. HTTP: the server's `timing_ms` "
             "(decode = JSON parsing and base64 decoding) and the client's latency; HTTP/JSON overhead = client "
-            "latency − server total, per pair (client encoding, transport, FastAPI, response JSON)."
+            "latency − server total, per pair (client encoding, transport, FastAPI, response JSON). `confidence`: "
+            "the confidence of each ICP result (with exit checks, one per check)."
         )
         head = ["stage"] + [f"{where} ({s})" for s in settings for where in ("in-process", "HTTP")]
         stages = [
@@ -997,16 +1047,15 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
             "target_embedding",
             "agent_steps",
             "icp",
+            "confidence",
             "server total",
             "HTTP/JSON overhead",
             "total (client)",
+            "agent steps run",
             "per agent step",
             "max abs ΔT vs in-process",
         ]
-        rows = [
-            [st] + [result["breakdown"][s][w].get(st, math.nan) for s in settings for w in ("in", "http")]
-            for st in stages
-        ]
+        rows = [[st] + [table[s][w].get(st, math.nan) for s in settings for w in ("in", "http")] for st in stages]
         out.append(md_table(head, rows))
 
     fl = result.get("flops")
@@ -1109,7 +1158,7 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
         )
 
     if result.get("throughput"):
-        out.append("\n## Service throughput (pranet-serve, PRANet-v2 requests, concurrent clients)\n")
+        out.append("\n## Service throughput (pranet-serve, default requests = PRANet adaptive, concurrent clients)\n")
         rows = [
             [
                 str(t["workers"]),
@@ -1143,14 +1192,20 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
     return "\n".join(out) + "\n"
 
 
-def breakdown(records: Sequence[Record], settings: Sequence[str]) -> dict[str, dict[str, dict[str, float]]]:
+def breakdown(
+    records: Sequence[Record],
+    settings: Sequence[str],
+    in_method: str = "pranet-v2",
+    http_method: str = "pranet-v2-http",
+) -> dict[str, dict[str, dict[str, float]]]:
     out: dict[str, dict[str, dict[str, float]]] = {}
     for s in settings:
-        inproc = [r for r in records if r.setting == s and r.method == "pranet-v2" and r.error is None]
-        http = [r for r in records if r.setting == s and r.method == "pranet-v2-http" and r.error is None]
-        stages = ("preprocess", "target_embedding", "agent_steps", "icp")
+        inproc = [r for r in records if r.setting == s and r.method == in_method and r.error is None]
+        http = [r for r in records if r.setting == s and r.method == http_method and r.error is None]
+        stages = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence")
         b_in = {st: median([r.extra["timing_ms"].get(st, math.nan) for r in inproc]) for st in stages}
         b_in["total (client)"] = median([r.ms for r in inproc])
+        b_in["agent steps run"] = median([r.extra["n_steps"] for r in inproc])
         b_in["per agent step"] = median(
             [r.extra["timing_ms"]["agent_steps"] / r.extra["n_steps"] for r in inproc if r.extra.get("n_steps")]
         )
@@ -1192,8 +1247,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     command = shlex.join(["pranet-bench", *(sys.argv[1:] if argv is None else argv)])
     result = run(args, command)
-    if "pranet-v2" in args.methods and "pranet-v2-http" in args.methods:
-        result["breakdown"] = breakdown(result["records"], args.settings)
+    result["breakdown"] = {
+        f"{a} / {b}": breakdown(result["records"], args.settings, a, b)
+        for a, b in BREAKDOWN_PAIRS
+        if a in args.methods and b in args.methods
+    }
     text = report(result)
     print(text)
     if args.markdown is not None:

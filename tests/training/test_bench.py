@@ -77,8 +77,13 @@ def test_breakdown_flops_ort_int8_early_stop_and_throughput_are_reported(bench_r
     for stage in ("preprocess", "target_embedding", "agent_steps", "icp", "total (client)"):
         assert _finite(breakdown[stage][0]) and _finite(breakdown[stage][1]), stage
     assert _finite(breakdown["HTTP/JSON overhead"][1]) and _finite(breakdown["decode"][1])
-    # The service returns what register() returns in-process for the same seed (clouds sent as float32).
-    assert doc["breakdown"]["noisy"]["http"]["max abs ΔT vs in-process"] < 1e-3
+    assert _finite(breakdown["agent steps run"][0]) and _finite(breakdown["confidence"][0])
+    # The service returns what register() returns in-process for the same seed (clouds sent as float32),
+    # for the paper's v2 and for the adaptive variant (the service's default request).
+    assert set(doc["breakdown"]) == {"pranet-v2 / pranet-v2-http", "pranet-adaptive / pranet-adaptive-http"}
+    for table in doc["breakdown"].values():
+        assert table["noisy"]["http"]["max abs ΔT vs in-process"] < 1e-3
+    assert text.count("## Where a registration's time goes") == 2
 
     flops = doc["flops"]
     assert flops["score_flops"] > 1e6 and 0 < flops["score_target_only_flops"] < flops["score_flops"]

@@ -79,8 +79,13 @@ def test_oracle_agent_through_the_pranet_runner(shapes):
     pair = make_pair(shapes[0], "clean", pair_rng(1234, "clean", 0))
     runner = ev.pranet_runner(OracleScorer(pair), ev.PRANET_METHODS)
     out = runner.fn(pair, np.random.default_rng(0))
-    assert set(out) == {"pranet-v1", "pranet-v2"}
+    assert set(out) == {"pranet-v1", "pranet-v2", "pranet-adaptive"}
     assert len(out["pranet-v1"].trajectory) == sum(DEFAULT_SCHEDULE)
+    # The adaptive run stops at its first exit check (ICP converges from the coarse phase) and is as accurate.
+    adaptive = out["pranet-adaptive"]
+    assert len(adaptive.trajectory) == adaptive.extra["checks"][0][0] == DEFAULT_SCHEDULE[0]
+    va = ev.evaluate_pair(pair.source, pair.target, pair.clean_source, adaptive.transform, pair.T_gt)
+    assert va.rotation_deg < 0.01 and va.translation < 1e-4 and not adaptive.extra["rescued"]
     assert out["pranet-v2"].ms >= out["pranet-v1"].ms  # v2 is timed as agent + ICP
     v1 = ev.evaluate_pair(pair.source, pair.target, pair.clean_source, out["pranet-v1"].transform, pair.T_gt)
     v2 = ev.evaluate_pair(pair.source, pair.target, pair.clean_source, out["pranet-v2"].transform, pair.T_gt)
