@@ -30,7 +30,8 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PRANET_HOST=0.0.0.0 \
-    PRANET_PORT=8000
+    PRANET_PORT=8000 \
+    OMP_WAIT_POLICY=PASSIVE
 
 # The wheel with the service extra only, every dependency pinned by requirements/service.lock.
 COPY requirements/service.lock /tmp/service.lock

@@ -38,6 +38,9 @@ def fail(message: str) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # Open3D's ICP runs on OpenMP; busy-waiting worker threads collapse throughput when the cores are shared
+    # (other workers, other processes): docs/PERFORMANCE.md. Read when libgomp loads, i.e. on the first ICP.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     args = parse_args(argv)
     from pranet.model.runtime import ModelLoadError
     from pranet.service.settings import Settings
