@@ -756,10 +756,10 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
     result["model"] = {**scorer.info(), "dir": str(args.model or "default (shipped)")}
     result["model_schedule"] = list(scorer.schedule)
     from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
-    from pranet.service.icp import RESCUE_MAX_DISTANCE, make_icp
+    from pranet.service.icp import make_icp, make_rescue_icp
 
     icp = make_icp()
-    rescue_icp = make_icp(max_distance=RESCUE_MAX_DISTANCE)
+    rescue_icp = make_rescue_icp()
     tmp = Path(tempfile.mkdtemp(prefix="pranet-bench-"))
     try:
         # int8 graphs: the model directory's own, else quantized now into a temporary copy.

@@ -138,9 +138,9 @@ def pranet_runner(
     want_paper = "pranet-v1" in methods or want_v2
     if "pranet-adaptive" in methods:
         from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
-        from pranet.service.icp import RESCUE_MAX_DISTANCE, make_icp
+        from pranet.service.icp import make_icp, make_rescue_icp
 
-        adaptive_icp, rescue_icp = icp_fn or make_icp(), make_icp(max_distance=RESCUE_MAX_DISTANCE)
+        adaptive_icp, rescue_icp = icp_fn or make_icp(), make_rescue_icp()
 
     def run(pair: Pair, rng: np.random.Generator) -> dict[str, MethodOutput]:
         out: dict[str, MethodOutput] = {}

@@ -9,7 +9,7 @@ import anyio
 from fastapi import APIRouter, Request
 from starlette.requests import ClientDisconnect
 
-from pranet.service.icp import RESCUE_MAX_DISTANCE, make_icp
+from pranet.service.icp import make_icp, make_rescue_icp
 from pranet.service.registration import RequestError, run_registration
 from pranet.service.schemas import ErrorResponse, RegisterResponse
 from pranet.service.state import ServiceState
@@ -61,7 +61,7 @@ async def register_clouds(request: Request) -> RegisterResponse:
             scorer=model,
             model_info=model.info(),
             icp=make_icp(),
-            rescue_icp=make_icp(max_distance=RESCUE_MAX_DISTANCE),
+            rescue_icp=make_rescue_icp(),
             max_points=settings.max_points,
             deadline=deadline,
             admitted_at=time.perf_counter(),
