@@ -11,8 +11,9 @@ carries a ``Confidence`` (``core.confidence``), computed in the unit frame.
 
 Beyond the paper, with ICP (identity mode): ``exit_checks`` refines the agent's estimate with ICP
 after those many steps and returns as soon as the refined result is confident (most pairs need only
-the coarse phase: ``docs/PERFORMANCE.md``); ``rescue_icp`` runs one wide-window ICP from the input
-pose when the agent's result stays unconfident, and keeps whichever is more confident.
+the coarse phase: ``docs/PERFORMANCE.md``). When the result stays unconfident, ``rescue_icp`` runs one
+wide-window ICP from the input pose and ``rescue_restarts`` reruns the coarse phase from six starts 30°
+around the best estimate (batched); the most confident result wins.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from pranet.core.agent import AgentResult, BatchScoreFn, ScoreFn, batch_from_sin
 from pranet.core.confidence import DEFAULT_THRESHOLD, Confidence, ConfidenceEstimator
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
 from pranet.core.se3 import Array
-from pranet.core.starts import DEFAULT_STARTS, start_rotations, start_transforms
+from pranet.core.starts import DEFAULT_STARTS, local_rotations, restart_transforms, start_rotations, start_transforms
 
 INITS = ("identity", "global")
 DEFAULT_REFINE_TOP = 3  # global mode: starts refined by ICP, best first by their agent-only confidence
@@ -106,7 +107,7 @@ class Registration:
     start_index: int = 0  # global mode: which start rotation won
     start_scores: list[float] = field(default_factory=list)  # global mode: each start's agent-only confidence
     checks: list[tuple[int, float]] = field(default_factory=list)  # exit checks: (agent steps, ICP confidence)
-    rescued: bool = False  # the wide-window ICP from the input pose won over the agent's result
+    rescued: str | None = None  # which rescue won over the agent's result: "wide_icp" or "restarts"
 
 
 def register(
@@ -125,6 +126,7 @@ def register(
     confidence_threshold: float = DEFAULT_THRESHOLD,
     exit_checks: Sequence[int] = (),
     rescue_icp: IcpFn | None = None,
+    rescue_restarts: bool = False,
 ) -> Registration:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)`` (any units); returns ``T_target_source``.
 
@@ -134,8 +136,10 @@ def register(
 
     ``exit_checks`` (identity mode with ``icp``): after each of these cumulative step counts, refine
     with ``icp`` and stop once the confidence reaches ``confidence_threshold``; the most confident
-    refined estimate is returned. ``rescue_icp`` (with ``icp``): when the result is still below the
-    threshold, also refine the input pose by ``rescue_icp`` then ``icp``; the more confident wins.
+    refined estimate is returned. Rescues (with ``icp``), while the result is below the threshold:
+    ``rescue_icp`` refines the input pose by ``rescue_icp`` then ``icp``; ``rescue_restarts`` runs the
+    coarse phase from ``core.starts.local_rotations`` around the best estimate and refines the
+    ``refine_top`` most promising; the most confident result wins.
     """
     if init not in INITS:
         raise ValueError(f"unknown init {init!r}; choose from {INITS}")
@@ -217,17 +221,32 @@ def register(
         if best is None or confidence.score > best[0].score:
             best = (confidence, b, T_unit, refined)
     assert best is not None
-    rescued = False
-    if rescue_icp is not None and icp is not None and best[0].score < confidence_threshold:
-        t_icp = time.perf_counter()
+    # 6. Rescues of an unconfident result (beyond the paper): a wide ICP from the input pose, then restarts.
+    t_rescue = time.perf_counter()
+    rescued: str | None = None
+    if icp is not None and rescue_icp is not None and best[0].score < confidence_threshold:
         wide = icp(src_unit, tgt_unit, rescue_icp(src_unit, tgt_unit, np.eye(4)).transform)
-        icp_ms += (time.perf_counter() - t_icp) * 1e3
         confidence = estimator.evaluate(src_unit, wide.transform)
         if confidence.score > best[0].score:
-            best, rescued = (confidence, best[1], wide.transform, wide), True
+            best, rescued = (confidence, best[1], wide.transform, wide), "wide_icp"
+    if icp is not None and rescue_restarts and best[0].score < confidence_threshold:
+        restarts = restart_transforms(best[2], src_n.mean(axis=0), local_rotations())
+        coarse = (schedule[0],) + (0,) * (len(schedule) - 1)
+        more = run_agent_batch(src_n, tgt_n, batch_score_fn(scorer, tgt_n), scorer.table, restarts, coarse, **loop)
+        ranker = ConfidenceEstimator(tgt_unit, max_target=RANK_TARGET, threshold=confidence_threshold)
+        quick = [ranker.evaluate(src_unit, a.transform, max_source=RANK_SOURCE).score for a in more]
+        for k in np.argsort(-np.asarray(quick), kind="stable")[: max(1, refine_top)]:
+            refined = icp(src_unit, tgt_unit, more[k].transform)
+            confidence = estimator.evaluate(src_unit, refined.transform)
+            if confidence.score > best[0].score:
+                best, rescued = (confidence, len(agents) + int(k), refined.transform, refined), "restarts"
+        agents = [*agents, *more]
+        starts = np.concatenate([starts, restarts])
+    rescue_ms = (time.perf_counter() - t_rescue) * 1e3
     confidence, b, T_unit, refined = best
     timing["icp"] = icp_ms
-    timing["confidence"] = (time.perf_counter() - t3) * 1e3 - icp_ms + check_ms[1]  # ranking the starts included
+    timing["confidence"] = (t_rescue - t3) * 1e3 - icp_ms + check_ms[1]  # ranking the starts included
+    timing["rescue"] = rescue_ms
     # 6. Back to world units.
     agent = agents[b]
     result_T = norm.transform_to_world(T_unit)

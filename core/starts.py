@@ -75,3 +75,29 @@ def start_transforms(rotations: npt.ArrayLike, source_centroid: npt.ArrayLike, t
     m = np.asarray(source_centroid, dtype=np.float64)
     c = np.asarray(target_centroid, dtype=np.float64)
     return np.stack([make_transform(Q, c - Q @ m) for Q in np.asarray(rotations, dtype=np.float64)])
+
+
+RESCUE_ANGLE_DEG = 30.0  # half the training range: a start this far off the estimate stays in the model's reach
+
+
+def local_rotations(angle_deg: float = RESCUE_ANGLE_DEG) -> Array:
+    """``(6, 3, 3)``: rotations by ``±angle_deg`` about x, y and z (the rescue's restarts around an estimate)."""
+    a = np.deg2rad(angle_deg)
+    out = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            c, s = np.cos(a), sign * np.sin(a)
+            i, j = [(1, 2), (2, 0), (0, 1)][axis]
+            Q = np.eye(3)
+            Q[i, i], Q[i, j], Q[j, i], Q[j, j] = c, -s, s, c
+            out.append(Q)
+    return np.stack(out)
+
+
+def restart_transforms(T: npt.ArrayLike, source_centroid: npt.ArrayLike, rotations: npt.ArrayLike) -> Array:
+    """``(B, 4, 4)``: the estimate ``T`` (``T_target_source``) turned by each of ``rotations: (B, 3, 3)`` about
+    where it puts the source centroid."""
+    T = np.asarray(T, dtype=np.float64)
+    m = np.asarray(source_centroid, dtype=np.float64)
+    c = T[:3, :3] @ m + T[:3, 3]
+    return np.stack([make_transform(Q @ T[:3, :3], c - Q @ T[:3, :3] @ m) for Q in np.asarray(rotations)])

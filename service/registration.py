@@ -131,6 +131,7 @@ def run_registration(
             n_starts=req.starts,
             exit_checks=req.exit_checks if req.icp and req.init == "identity" else (),
             rescue_icp=rescue_icp if req.icp and req.rescue else None,
+            rescue_restarts=req.icp and req.rescue,
         )
     except DegenerateCloudError as e:
         raise RequestError(422, str(e)) from None

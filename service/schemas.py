@@ -100,8 +100,8 @@ class RegisterRequest(_Strict):
     )
     rescue: bool = Field(
         True,
-        description="with icp: when the result is still 'suspect', also run a wide-window ICP from the input pose and "
-        "keep the more confident of the two",
+        description="with icp: when the result is still 'suspect', try a wide-window ICP from the input pose, then "
+        "the coarse phase again from six starts 30° around the best estimate; the most confident result is kept",
     )
     return_trajectory: bool = Field(True, description="include the agent's transform after every step")
     init: Literal["identity", "global"] = Field(
@@ -171,7 +171,11 @@ class RegisterResponse(BaseModel):
     exit_checks: list[ExitCheck] = Field(
         default_factory=list, description="the exit checks that ran, in order; the agent stopped after a converged one"
     )
-    rescued: bool = Field(False, description="the wide-window ICP from the input pose won over the agent's result")
+    rescued: Literal["wide_icp", "restarts"] | None = Field(
+        None,
+        description="which rescue won over the agent's result (null: none ran or none was more confident); with "
+        "'restarts' the trajectory and initial_transform are the winning restart's",
+    )
 
 
 class HealthResponse(BaseModel):

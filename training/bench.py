@@ -170,6 +170,7 @@ def pranet_method(
             schedule=schedule,
             exit_checks=exit_checks,
             rescue_icp=rescue_icp,
+            rescue_restarts=rescue_icp is not None,
         )
         ms = (time.perf_counter() - t0) * 1e3
         extra = {"timing_ms": reg.timing_ms, "n_steps": len(reg.trajectory), "agent_transform": reg.agent_transform}
@@ -1048,6 +1049,7 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
             "agent_steps",
             "icp",
             "confidence",
+            "rescue",
             "server total",
             "HTTP/JSON overhead",
             "total (client)",
@@ -1202,7 +1204,7 @@ def breakdown(
     for s in settings:
         inproc = [r for r in records if r.setting == s and r.method == in_method and r.error is None]
         http = [r for r in records if r.setting == s and r.method == http_method and r.error is None]
-        stages = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence")
+        stages = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence", "rescue")
         b_in = {st: median([r.extra["timing_ms"].get(st, math.nan) for r in inproc]) for st in stages}
         b_in["total (client)"] = median([r.ms for r in inproc])
         b_in["agent steps run"] = median([r.extra["n_steps"] for r in inproc])

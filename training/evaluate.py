@@ -157,6 +157,7 @@ def pranet_runner(
                 early_stop=early_stop,
                 exit_checks=DEFAULT_EXIT_CHECKS,
                 rescue_icp=rescue_icp,
+                rescue_restarts=rescue_icp is not None,
             )
             conf = reg.confidence
             extra = {

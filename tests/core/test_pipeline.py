@@ -149,9 +149,32 @@ def test_rescue_icp_wins_only_when_it_is_more_confident():
     icp = snapping_icp(truth, 10.0)
     wide_ok = lambda s, t, init: snapping_icp(truth, 180.0)(s, t, init)  # noqa: E731
     reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_ok)
-    assert reg.rescued and isotropic_errors(reg.transform, T)[0] < 1e-4
+    assert reg.rescued == "wide_icp" and isotropic_errors(reg.transform, T)[0] < 1e-4
     assert reg.confidence.status == "converged"
     wide_bad = lambda s, t, init: snapping_icp(truth, 0.0)(s, t, init)  # noqa: E731  (stays at the input pose)
     reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_bad)
     assert isotropic_errors(reg.transform, T)[0] > 30.0
     assert reg.confidence.status == "suspect"
+
+
+def test_restarts_around_the_estimate_rescue_a_rotation_beyond_reach():
+    """The stand-in knows rotations within 35° only; the answer is 50° about x. With early stop the agent stays at
+    the identity (all rewards negative), unconfident; the restart turned +30° about x is within reach, converges,
+    and wins. Without restarts the result stays suspect."""
+    src, tgt, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
+    icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
+    args = (src, tgt)
+    plain = register(
+        *args, RangeLimitedOracle(src, tgt, T, reach_deg=35.0), np.random.default_rng(0), icp=icp, early_stop=True
+    )
+    assert plain.confidence.status == "suspect" and plain.rescued is None
+    oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
+    reg = register(*args, oracle, np.random.default_rng(0), icp=icp, early_stop=True, rescue_restarts=True)
+    assert reg.rescued == "restarts" and reg.confidence.status == "converged"
+    assert isotropic_errors(reg.transform, T)[0] < 1e-4
+    assert oracle.batch_calls and oracle.batch_calls[0] == 6  # six restarts, one batched call per step
+    assert "rescue" in reg.timing_ms
+    # The winning restart's trajectory is returned, from its start 30° about x off the identity.
+    start_angle = np.degrees(np.linalg.norm(Rotation.from_matrix(reg.initial_transform[:3, :3]).as_rotvec()))
+    assert start_angle == pytest.approx(30.0)
+    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_transform)

@@ -51,3 +51,29 @@ def test_start_transforms_rotate_about_the_source_centroid_onto_the_target_centr
     for Ti, Ri in zip(T, R, strict=True):
         np.testing.assert_allclose(Ti[:3, :3], Ri)
         np.testing.assert_allclose(Ti[:3, :3] @ m + Ti[:3, 3], c)
+
+
+def test_local_rotations_are_plus_minus_the_angle_about_each_axis():
+    from scipy.spatial.transform import Rotation
+
+    from pranet.core.starts import local_rotations
+
+    Q = local_rotations(30.0)
+    assert Q.shape == (6, 3, 3)
+    expected = [np.deg2rad(30.0) * s * e for e in np.eye(3) for s in (1.0, -1.0)]
+    np.testing.assert_allclose(Rotation.from_matrix(Q).as_rotvec(), expected, atol=1e-12)
+
+
+def test_restart_transforms_turn_the_estimate_about_the_moved_centroid():
+    from scipy.spatial.transform import Rotation
+
+    from pranet.core.se3 import make_transform
+    from pranet.core.starts import local_rotations, restart_transforms
+
+    T = make_transform(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), np.array([0.4, -0.1, 0.2]))
+    m = np.array([0.1, 0.2, -0.3])
+    Q = local_rotations(30.0)
+    out = restart_transforms(T, m, Q)
+    for k in range(6):
+        np.testing.assert_allclose(out[k][:3, :3], Q[k] @ T[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(out[k][:3, :3] @ m + out[k][:3, 3], T[:3, :3] @ m + T[:3, 3], atol=1e-12)
