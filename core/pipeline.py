@@ -136,7 +136,7 @@ def register(
 
     ``exit_checks`` (identity mode with ``icp``): after each of these cumulative step counts, refine
     with ``icp`` and stop once the confidence reaches ``confidence_threshold``; the most confident
-    refined estimate is returned. Rescues (with ``icp``), while the result is below the threshold:
+    refined estimate is returned. Rescues (with ``icp``), when the result is below the threshold:
     ``rescue_icp`` refines the input pose by ``rescue_icp`` then ``icp``; ``rescue_restarts`` runs the
     coarse phase from ``core.starts.local_rotations`` around the best estimate and refines the
     ``refine_top`` most promising; the most confident result wins.
@@ -224,12 +224,13 @@ def register(
     # 6. Rescues of an unconfident result (beyond the paper): a wide ICP from the input pose, then restarts.
     t_rescue = time.perf_counter()
     rescued: str | None = None
-    if icp is not None and rescue_icp is not None and best[0].score < confidence_threshold:
+    suspect = best[0].score < confidence_threshold  # both rescues run: a wide ICP may be confidently wrong
+    if icp is not None and rescue_icp is not None and suspect:
         wide = icp(src_unit, tgt_unit, rescue_icp(src_unit, tgt_unit, np.eye(4)).transform)
         confidence = estimator.evaluate(src_unit, wide.transform)
         if confidence.score > best[0].score:
             best, rescued = (confidence, best[1], wide.transform, wide), "wide_icp"
-    if icp is not None and rescue_restarts and best[0].score < confidence_threshold:
+    if icp is not None and rescue_restarts and suspect:
         restarts = restart_transforms(best[2], src_n.mean(axis=0), local_rotations())
         coarse = (schedule[0],) + (0,) * (len(schedule) - 1)
         more = run_agent_batch(src_n, tgt_n, batch_score_fn(scorer, tgt_n), scorer.table, restarts, coarse, **loop)
