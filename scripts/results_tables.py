@@ -16,12 +16,42 @@ from pathlib import Path
 
 from pranet.training.evaluate import format_table
 
-ORDER = ("pranet-v1", "pranet-v2", "icp", "fgr", "ransac")
+ORDER = ("pranet-v1", "pranet-v2", "pranet-adaptive", "icp", "fgr", "ransac")
+LABELS = {
+    "pranet-v1": "PRANet-v1",
+    "pranet-v2": "PRANet-v2",
+    "pranet-adaptive": "PRANet adaptive (ours)",
+    "icp": "ICP",
+    "fgr": "FGR+ICP",
+    "ransac": "RANSAC+ICP",
+}
+PAPER_FOOTNOTED = {"fgr"}  # the paper's FGR ran without ICP and with mesh normals (RESULTS.md footnote)
+
+
+def _cell(x: float | None) -> str:
+    return "–" if x is None else f"{x:.4g}"
+
+
+def markdown_table(summary: dict, paper: dict) -> str:
+    """The RESULTS.md table: our means, median rotation, success, median ms; the paper's means beside."""
+    cols = ["method", "rot (°)", "rot median", "trans", "L2", "MCD", "success", "median ms"]
+    cols += ["paper rot", "paper trans", "paper L2", "paper MCD"]
+    lines = ["| " + " | ".join(cols) + " |", "| " + " | ".join(["---"] * len(cols)) + " |"]
+    for m, s in summary.items():
+        p = paper.get(m) or {}
+        star = "*" if m in PAPER_FOOTNOTED and p else ""
+        ours = [s["rotation_deg"], s["rotation_deg_median"], s["translation"], s["l2"], s["mcd"]]
+        theirs = [p.get(k) for k in ("rotation_deg", "translation", "l2", "mcd")]
+        cells = [LABELS.get(m, m), *map(_cell, ours), f"{100 * s['success_rate']:.1f} %", f"{s['ms_median']:.1f}"]
+        cells += [_cell(x) + (star if x is not None else "") for x in theirs]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("files", nargs="+", type=Path)
+    p.add_argument("--markdown", action="store_true", help="print the RESULTS.md markdown tables")
     args = p.parse_args()
     by_setting: dict[str, list[dict]] = defaultdict(list)
     for f in args.files:
@@ -41,7 +71,7 @@ def main() -> None:
         summary = {m: summary[m] for m in ORDER if m in summary}
         seed, n, angle, rotation = keys.pop()
         print(f"\n{setting}: {n} pairs, seed {seed}, {rotation} rotation <= {angle}°, translation <= 0.5")
-        print(format_table(summary, paper))
+        print(markdown_table(summary, paper) if args.markdown else format_table(summary, paper))
 
 
 if __name__ == "__main__":
