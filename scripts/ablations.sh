@@ -6,21 +6,24 @@
 #   bash scripts/ablations.sh                 # all of them (hours on 2 cores)
 #   bash scripts/ablations.sh reward          # one group: reward | sampling | curriculum | policy
 #   EPOCHS=2 LIMIT=500 PAIRS=50 bash scripts/ablations.sh curriculum
+#   EPOCHS=3 LIMIT=1500 PAIRS=100 THREADS=1 bash scripts/ablations.sh reward sampling curriculum   # RESULTS.md
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 EPOCHS="${EPOCHS:-6}"
 LIMIT="${LIMIT:-4601}"
 PAIRS="${PAIRS:-200}"
+THREADS="${THREADS:-2}"  # torch intra-op threads of each training run
 BIN=.venv/bin
 groups=("${@:-reward sampling curriculum policy}")
 
 variant() {  # name, then --set overrides; trains, exports, evaluates on clean pairs
     local name=$1; shift
     local out="runs/ablation-$name"
-    "$BIN/pranet-train" --preset cpu --epochs "$EPOCHS" --limit "$LIMIT" --out "$out" --no-progress --resume "$@"
+    "$BIN/pranet-train" --preset cpu --epochs "$EPOCHS" --limit "$LIMIT" --out "$out" --no-progress --resume \
+        --threads "$THREADS" "$@"
     "$BIN/pranet-export" "$out/last.pt" --out "$out/model" --name "ablation-$name" > /dev/null
     "$BIN/pranet-eval" --setting clean --limit "$PAIRS" --methods pranet-v1 --model "$out/model" \
-        --json "$out/eval.json" ${EVAL_ARGS:-} --quiet | tee "$out/eval.txt"
+        --json "$out/eval.json" --threads "$THREADS" ${EVAL_ARGS:-} --quiet | tee "$out/eval.txt"
 }
 
 for group in ${groups[*]}; do
