@@ -149,7 +149,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error("a checkpoint is required (or --int8 to quantize the existing model directory --out)")
     if args.checkpoint is not None:
         net, ck = load_checkpoint(args.checkpoint)
-        card = export_model(net, args.out, card_from_checkpoint(ck, args.name, args.version))
+        card = card_from_checkpoint(ck, args.name, args.version)
+        # Provenance: which checkpoint (path as given, relative to the repository root when run from it).
+        card["checkpoint"] = {"path": args.checkpoint.as_posix(), "sha256": sha256_file(args.checkpoint)}
+        card = export_model(net, args.out, card)
     if args.int8:
         from pranet.model.quantize import quantize_model_dir
 

@@ -113,3 +113,30 @@ def test_shipped_model_loads_and_matches_this_action_table():
     assert model.schedule == (20, 40) and len(model.table) == 24
     tgt = np.random.default_rng(0).standard_normal((model.n_points, 3))
     assert np.isfinite(model.score_fn(tgt)(tgt, tgt)).all()
+
+
+def test_shipped_model_is_its_committed_checkpoint():
+    """The shipped graphs compute what the checkpoint named in the card computes (and that file is the one
+    the card hashed): the trained weights in the repository come from the repository's own training run."""
+    from pathlib import Path
+
+    from pranet.model.export import load_checkpoint, sha256_file
+
+    card = read_card(default_model_dir())
+    ck_path = Path(__file__).resolve().parents[2] / card["checkpoint"]["path"]
+    assert ck_path.is_file(), f"{ck_path}: the checkpoint of the shipped model is not committed"
+    assert sha256_file(ck_path) == card["checkpoint"]["sha256"]
+    net, ck = load_checkpoint(ck_path)
+    assert ck["epoch"] + 1 == card["training"]["epochs_completed"] and ck["val_loss"] == card["training"]["val_loss"]
+    model = RewardModel.load(default_model_dir(), threads=1)
+    rng = np.random.default_rng(3)
+    src = rng.standard_normal((model.n_points, 3)).astype(np.float32) * 0.4
+    tgt = src @ np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]], np.float32).T + 0.05
+    with torch.no_grad():
+        ref = net(
+            torch.from_numpy(src[None]),
+            torch.from_numpy(knn_indices(src[None], model.k)),
+            torch.from_numpy(tgt[None]),
+            torch.from_numpy(knn_indices(tgt[None], model.k)),
+        )[0].numpy()
+    np.testing.assert_allclose(model.score_fn(tgt)(src, tgt), ref, rtol=1e-4, atol=1e-5)
