@@ -60,7 +60,8 @@ def test_int8_rewards_are_close_to_fp32(int8_dir):
         assert r8.shape == r32.shape and np.isfinite(r8).all()
         diffs.append(np.abs(r32 - r8).max())
         same_argmax += int(np.argmax(r32) == np.argmax(r8))
-    # Measured on ModelNet40 pairs (docs/PERFORMANCE.md): max |diff| ~1e-3 on rewards of order 0.1.
+    # With 7-bit weights (reduce_range): max |diff| 0.005-0.011 on an AVX2-only CPU, ~2e-3 with VNNI, on rewards
+    # of order 0.3. Full-range int8 weights saturate on AVX2 (0.04-0.066): this bound catches that.
     assert max(diffs) < 0.02, diffs
     assert same_argmax >= 3
 
