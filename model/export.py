@@ -4,13 +4,17 @@ The directory holds two graphs, so that the target embedding stays separable and
 per registration:
 
 - ``embed.onnx``: ``points (B, N, 3) float32, knn (B, N, k) int64 -> features (B, N, D), centroid (B, 3)``
-- ``score.onnx``: ``points, knn, target_features (B, M, D), target_centroid (B, 3) -> rewards (B, A)``
+- ``score.onnx``: ``points, knn, target_points, target_features (B, M, D), target_centroid (B, 3)
+  -> rewards (B, A), pair_features (B, P)``
+- ``head.onnx``: ``pair_features (B, P), offset (B, 3) -> rewards (B, A)``, the MLP heads alone. With
+  centred inputs (the ``cpu`` preset) a translation action leaves ``pair_features`` unchanged, so the
+  runtime re-scores a translated source with this graph instead of ``score.onnx``.
 
 and ``card.json``: preset, N, k, the action table (scales, names, fingerprint), the schedule, the
 network config, the training summary and the sha256 of both graphs (checked at load). The same
 metadata is stored in each graph's ``metadata_props``.
 
-``--int8`` also writes dynamically quantized ``embed.int8.onnx``/``score.int8.onnx`` (listed in the
+``--int8`` also writes dynamically quantized ``*.int8.onnx`` graphs (listed in the
 card with their sha256; ``pranet.model.quantize``). Without a checkpoint, ``pranet-export --int8 --out
 DIR`` adds them to the existing model directory ``DIR``.
 """
@@ -27,9 +31,10 @@ import torch
 
 from pranet.core.actions import build_action_table
 from pranet.model.config import NetConfig
-from pranet.model.network import EmbedGraph, RewardNet, ScoreGraph
+from pranet.model.network import EmbedGraph, HeadGraph, RewardNet, ScoreGraph
 
 OPSET = 17
+FP32_GRAPHS = ("embed.onnx", "score.onnx", "head.onnx")
 
 
 def sha256_file(path: Path) -> str:
@@ -57,16 +62,17 @@ def _set_metadata(path: Path, meta: dict[str, str]) -> None:
 
 
 def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, Any]:
-    """Write ``embed.onnx``, ``score.onnx`` and ``card.json`` into ``out``; returns the card."""
+    """Write ``embed.onnx``, ``score.onnx``, ``head.onnx`` and ``card.json`` into ``out``; returns the card."""
     out.mkdir(parents=True, exist_ok=True)
-    for stale in ("embed.int8.onnx", "score.int8.onnx"):  # made from the previous graphs, if any
-        (out / stale).unlink(missing_ok=True)
+    for stale in out.glob("*.int8.onnx"):  # made from the previous graphs, if any
+        stale.unlink()
     cfg = net.cfg
     N, k = cfg.n_points, cfg.k
     pts = torch.randn(1, N, 3)
     knn = torch.randint(0, N, (1, N, k), dtype=torch.int64)
     with torch.no_grad():
         feats, cen = net.embed(pts, knn)
+        pair = net.pair_features(feats, cen, feats, cen, pts, pts)
     axes = {"points": {0: "batch", 1: "n"}, "knn": {0: "batch", 1: "n"}}
     torch.onnx.export(
         EmbedGraph(net),
@@ -83,21 +89,32 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         (pts, knn, pts, feats, cen),
         str(out / "score.onnx"),
         input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
-        output_names=["rewards"],
+        output_names=["rewards", "pair_features"],
         dynamic_axes={
             **axes,
             "target_points": {0: "batch", 1: "m"},
             "target_features": {0: "batch", 1: "m"},
             "target_centroid": {0: "batch"},
             "rewards": {0: "batch"},
+            "pair_features": {0: "batch"},
         },
         opset_version=OPSET,
         dynamo=False,
     )
+    torch.onnx.export(
+        HeadGraph(net),
+        (pair, cen - cen),
+        str(out / "head.onnx"),
+        input_names=["pair_features", "offset"],
+        output_names=["rewards"],
+        dynamic_axes={"pair_features": {0: "batch"}, "offset": {0: "batch"}, "rewards": {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
     meta = {k: json.dumps(v) for k, v in card.items() if k != "files"}
-    for name in ("embed.onnx", "score.onnx"):
+    for name in FP32_GRAPHS:
         _set_metadata(out / name, meta)
-    card = {**card, "files": {name: sha256_file(out / name) for name in ("embed.onnx", "score.onnx")}}
+    card = {**card, "files": {name: sha256_file(out / name) for name in FP32_GRAPHS}}
     (out / "card.json").write_text(json.dumps(card, indent=2) + "\n")
     return card
 

@@ -170,6 +170,7 @@ class RewardNet(nn.Module):
             TransformerBlock(D, cfg.heads, cfg.ff_dim, cfg.self_attention) for _ in range(cfg.blocks)
         )
         pooled = D * (2 if cfg.pool == "maxmean" else 1)
+        self._pooled_dims = 2 * pooled  # source and target pooled vectors, first in the MLP input
         extra = 3 if cfg.center_inputs else 0
         self.correspondence = SoftCorrespondence(D) if cfg.correspondence else None
         extra += 12 if cfg.correspondence else 0
@@ -194,6 +195,45 @@ class RewardNet(nn.Module):
             return torch.cat([x.amax(dim=1), x.mean(dim=1)], dim=-1)
         return x.amax(dim=1)
 
+    def pair_features(
+        self,
+        src: Tensor,
+        src_centroid: Tensor,
+        tgt: Tensor,
+        tgt_centroid: Tensor,
+        src_points: Tensor | None = None,
+        tgt_points: Tensor | None = None,
+    ) -> Tensor:
+        """Embeddings of both clouds -> ``(B, P)``: the MLP input except the centroid offset.
+
+        With ``center_inputs`` this does not depend on where the source is, only on its orientation: a
+        translation action leaves it unchanged (``head`` alone re-scores), which the runtime exploits.
+        ``src_points``/``tgt_points`` (``(B, N, 3)``, ``(B, M, 3)``) are needed with ``correspondence``.
+        """
+        for block in self.blocks:
+            # Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X) with shared weights (paper, "Architecture").
+            src, tgt = block(src, tgt), block(tgt, src)
+        parts = [self._pool(src), self._pool(tgt)]
+        if self.correspondence is not None:
+            if src_points is None or tgt_points is None:
+                raise ValueError("this network needs the points of both clouds (correspondence=True)")
+            x = src_points - src_centroid.unsqueeze(1)
+            y = tgt_points - tgt_centroid.unsqueeze(1)
+            parts.append(self.correspondence(src, tgt, x, y))
+        return torch.cat(parts, dim=-1)
+
+    def head(self, pair: Tensor, offset: Tensor) -> Tensor:
+        """``pair: (B, P)`` from ``pair_features``, ``offset: (B, 3)`` = source − target centroid -> ``(B, A)``.
+
+        The offset is used only with ``center_inputs`` (it sits after the two pooled vectors, as in training).
+        """
+        if self.cfg.center_inputs:
+            n = self._pooled_dims
+            pair = torch.cat([pair[:, :n], offset, pair[:, n:]], dim=-1)
+        h = self.shared(pair)
+        out = torch.cat([self.rotation_head(h), self.translation_head(h)], dim=-1)
+        return out[:, self.table_order]
+
     def score(
         self,
         src: Tensor,
@@ -203,25 +243,9 @@ class RewardNet(nn.Module):
         src_points: Tensor | None = None,
         tgt_points: Tensor | None = None,
     ) -> Tensor:
-        """Embeddings of both clouds -> ``rewards: (B, A)`` in action-table order.
-
-        ``src_points``/``tgt_points`` (``(B, N, 3)``, ``(B, M, 3)``) are needed with ``correspondence``.
-        """
-        for block in self.blocks:
-            # Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X) with shared weights (paper, "Architecture").
-            src, tgt = block(src, tgt), block(tgt, src)
-        parts = [self._pool(src), self._pool(tgt)]
-        if self.cfg.center_inputs:
-            parts.append(src_centroid - tgt_centroid)
-        if self.correspondence is not None:
-            if src_points is None or tgt_points is None:
-                raise ValueError("this network needs the points of both clouds (correspondence=True)")
-            x = src_points - src_centroid.unsqueeze(1)
-            y = tgt_points - tgt_centroid.unsqueeze(1)
-            parts.append(self.correspondence(src, tgt, x, y))
-        h = self.shared(torch.cat(parts, dim=-1))
-        out = torch.cat([self.rotation_head(h), self.translation_head(h)], dim=-1)
-        return out[:, self.table_order]
+        """Embeddings of both clouds -> ``rewards: (B, A)`` in action-table order (``pair_features`` + ``head``)."""
+        pair = self.pair_features(src, src_centroid, tgt, tgt_centroid, src_points, tgt_points)
+        return self.head(pair, src_centroid - tgt_centroid)
 
     def forward(self, source: Tensor, source_knn: Tensor, target: Tensor, target_knn: Tensor) -> Tensor:
         return self.score(*self.embed(source, source_knn), *self.embed(target, target_knn), source, target)
@@ -239,9 +263,11 @@ class EmbedGraph(nn.Module):
 
 
 class ScoreGraph(nn.Module):
-    """ONNX graph 2: ``(points, knn, target_points, target_features, target_centroid) -> rewards``; once a step.
+    """ONNX graph 2: ``(points, knn, target_points, target_features, target_centroid) -> (rewards, pair_features)``;
+    once a step.
 
-    ``target_points`` is only an input of networks with ``correspondence``.
+    ``target_points`` is only an input of networks with ``correspondence``. ``pair_features`` is what
+    ``HeadGraph`` needs to re-score the same source after a translation (``center_inputs`` networks).
     """
 
     def __init__(self, net: RewardNet) -> None:
@@ -250,5 +276,22 @@ class ScoreGraph(nn.Module):
 
     def forward(
         self, points: Tensor, knn: Tensor, target_points: Tensor, target_features: Tensor, target_centroid: Tensor
-    ) -> Tensor:
-        return self.net.score(*self.net.embed(points, knn), target_features, target_centroid, points, target_points)
+    ) -> tuple[Tensor, Tensor]:
+        src, centroid = self.net.embed(points, knn)
+        pair = self.net.pair_features(src, centroid, target_features, target_centroid, points, target_points)
+        return self.net.head(pair, centroid - target_centroid), pair
+
+
+class HeadGraph(nn.Module):
+    """ONNX graph 3: ``(pair_features (B, P), offset (B, 3)) -> rewards (B, A)``: the MLP heads alone.
+
+    For a ``center_inputs`` network, a translated source has the same ``pair_features``; only the centroid
+    offset (source − target centroid) changes, so the runtime re-scores it with this graph (microseconds).
+    """
+
+    def __init__(self, net: RewardNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, pair_features: Tensor, offset: Tensor) -> Tensor:
+        return self.net.head(pair_features, offset)

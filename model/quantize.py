@@ -1,6 +1,7 @@
 """int8 variants of a model directory: dynamic quantization of both graphs with onnxruntime (no torch).
 
-``quantize_model_dir(dir)`` writes ``embed.int8.onnx`` and ``score.int8.onnx`` beside the fp32 graphs
+``quantize_model_dir(dir)`` writes ``embed.int8.onnx``, ``score.int8.onnx`` (and ``head.int8.onnx``
+when the model has ``head.onnx``) beside the fp32 graphs
 and lists them in ``card.json`` (``files``, with their sha256, checked at load like the fp32 ones),
 together with a ``quantization`` entry naming the fp32 graphs they were made from, so that a stale int8
 file (the fp32 graphs re-exported since) is refused. ``RewardModel.load(dir, precision="int8")``
@@ -27,6 +28,7 @@ from typing import Any
 
 FP32_GRAPHS = ("embed.onnx", "score.onnx")
 INT8_GRAPHS = ("embed.int8.onnx", "score.int8.onnx")
+HEAD_GRAPHS = ("head.onnx", "head.int8.onnx")  # (fp32, int8), when the model has a head graph
 OP_TYPES = ("MatMul", "Gemm")
 
 
@@ -73,10 +75,13 @@ def quantize_model_dir(model_dir: str | Path, per_channel: bool = True, reduce_r
     model_dir = Path(model_dir)
     card_path = model_dir / "card.json"
     card = read_card(model_dir, verify=True)  # quantize only verified fp32 graphs
-    for fp32, int8 in zip(FP32_GRAPHS, INT8_GRAPHS, strict=True):
+    pairs = list(zip(FP32_GRAPHS, INT8_GRAPHS, strict=True))
+    if HEAD_GRAPHS[0] in card.get("files", {}):
+        pairs.append(HEAD_GRAPHS)
+    for fp32, int8 in pairs:
         quantize_graph(model_dir / fp32, model_dir / int8, per_channel=per_channel, reduce_range=reduce_range)
-    files = {k: v for k, v in card.get("files", {}).items() if k not in INT8_GRAPHS}
-    files.update({name: _sha256(model_dir / name) for name in INT8_GRAPHS})
+    files = {k: v for k, v in card.get("files", {}).items() if k not in INT8_GRAPHS + HEAD_GRAPHS[1:]}
+    files.update({int8: _sha256(model_dir / int8) for _, int8 in pairs})
     card["files"] = files
     card["quantization"] = {
         "method": "onnxruntime.quantization.quantize_dynamic",
@@ -86,7 +91,7 @@ def quantize_model_dir(model_dir: str | Path, per_channel: bool = True, reduce_r
         "op_types": list(OP_TYPES),
         "matmul_const_b_only": True,
         "onnxruntime": onnxruntime.__version__,
-        "from": {name: files.get(name) for name in FP32_GRAPHS},  # the fp32 graphs the int8 ones were made from
+        "from": {fp32: files.get(fp32) for fp32, _ in pairs},  # the fp32 graphs the int8 ones were made from
     }
     card_path.write_text(json.dumps(card, indent=2) + "\n")
     return card

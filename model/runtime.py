@@ -7,8 +7,16 @@ thread settings. ``model.score_fn(target)`` embeds the target once and returns t
 its first call and reuses it (rigid motion does not change it); the feeds of the per-step score call
 are built once, only the source buffer is refilled each step.
 
-``precision="int8"`` loads ``embed.int8.onnx``/``score.int8.onnx`` (``pranet.model.quantize``, written
-by ``pranet-export --int8``) instead of the fp32 graphs; their sha256 is checked against the card the
+Translation steps: the network embeds each cloud about its own centroid (``center_inputs``), so a
+translated source has the same features, attention and soft correspondences; only the centroid offset
+fed to the MLP heads changes. ``score.onnx`` also returns those pair features, and when the source's
+centred points equal the previous call's (to ``SAME_SHAPE_ATOL``: the last action was a translation),
+``score_fn`` re-scores with ``head.onnx`` (the MLP heads, microseconds) instead of the whole network.
+The rewards agree with a full call to float32 rounding (``tests/model/test_export_runtime.py``). Model
+directories without ``head.onnx`` (exported before it) run every step through ``score.onnx``.
+
+``precision="int8"`` loads the ``*.int8.onnx`` graphs (``pranet.model.quantize``, written by
+``pranet-export --int8``) instead of the fp32 graphs; their sha256 is checked against the card the
 same way. The session options are measured in ``docs/PERFORMANCE.md`` (``pranet-bench``).
 """
 
@@ -28,11 +36,16 @@ from pranet.core.actions import ActionTable, build_action_table
 from pranet.core.agent import BatchScoreFn, ScoreFn
 from pranet.core.knn import knn_indices
 
-GRAPHS = ("embed.onnx", "score.onnx")
+GRAPHS = ("embed.onnx", "score.onnx")  # required
+HEAD_GRAPH = "head.onnx"  # optional: the MLP heads alone, for translation steps
 PRECISIONS = ("fp32", "int8")
 INT8_GRAPHS = ("embed.int8.onnx", "score.int8.onnx")
+HEAD_INT8_GRAPH = "head.int8.onnx"
 OPTIMIZATION_LEVELS = ("none", "basic", "extended", "all")
 EXECUTION_MODES = ("sequential", "parallel")
+# Centred source points within this (unit frame) of the previous call's: the same orientation, so the
+# pair features are reused. A 0.5° turn moves a cloud of radius 1e-3 by 9e-6, well above it.
+SAME_SHAPE_ATOL = 1e-6
 
 
 def graph_files(precision: str = "fp32") -> tuple[str, str]:
@@ -40,6 +53,12 @@ def graph_files(precision: str = "fp32") -> tuple[str, str]:
     if precision not in PRECISIONS:
         raise ValueError(f"unknown precision {precision!r}; choose from {PRECISIONS}")
     return GRAPHS if precision == "fp32" else INT8_GRAPHS
+
+
+def head_file(precision: str = "fp32") -> str:
+    """The head graph's file name of ``precision``."""
+    graph_files(precision)  # validates precision
+    return HEAD_GRAPH if precision == "fp32" else HEAD_INT8_GRAPH
 
 
 class ModelLoadError(RuntimeError):
@@ -65,8 +84,8 @@ def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> 
         card = json.loads(card_path.read_text())
     except (OSError, json.JSONDecodeError) as e:
         raise ModelLoadError(f"unreadable model card {card_path}: {e}") from e
-    graphs = graph_files(precision)
     files = card.get("files", {})
+    graphs = graph_files(precision) + ((head_file(precision),) if HEAD_GRAPH in files else ())
     if precision != "fp32":
         missing = [name for name in graphs if name not in files or not (model_dir / name).is_file()]
         made_from = card.get("quantization", {}).get("from", {})
@@ -75,7 +94,9 @@ def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> 
                 f"no {precision} graphs in {model_dir} (missing or not in the card: {', '.join(missing)}); "
                 f"write them with: pranet-export --int8 --out {model_dir}"
             )
-        if any(made_from.get(name) != files.get(name) for name in GRAPHS):
+        if any(
+            made_from.get(name) != files.get(name) for name in GRAPHS + ((HEAD_GRAPH,) if HEAD_GRAPH in files else ())
+        ):
             raise ModelLoadError(
                 f"the {precision} graphs in {model_dir} were made from other fp32 graphs than the card's (stale); "
                 f"re-run: pranet-export --int8 --out {model_dir}"
@@ -106,8 +127,10 @@ class RewardModel:
     _embed: Any
     _score: Any
     _score_inputs: tuple[str, ...] = ()
+    _head: Any = None  # head.onnx session, or None: every step runs score.onnx
 
     precision: str = "fp32"
+    reuse_translations: bool = True  # re-score translated sources with the head alone (when _head exists)
 
     @classmethod
     def load(
@@ -121,11 +144,18 @@ class RewardModel:
         arena: bool = True,
         mem_pattern: bool = True,
         spinning: bool = False,
+        reuse_translations: bool = True,
     ) -> RewardModel:
-        """Open both graphs of ``precision`` in CPU sessions built by ``session_options`` (same arguments)."""
+        """Open the graphs of ``precision`` in CPU sessions built by ``session_options`` (same arguments).
+
+        ``reuse_translations``: re-score a translated source with ``head.onnx`` (when the model has it
+        and embeds centred clouds); ``False`` runs ``score.onnx`` at every step.
+        """
         model_dir = Path(model_dir) if model_dir else default_model_dir()
         card = read_card(model_dir, verify=verify, precision=precision)
         graphs = graph_files(precision)
+        has_head = HEAD_GRAPH in card.get("files", {}) and bool(card.get("net", {}).get("center_inputs"))
+        graphs += (head_file(precision),) if has_head else ()
         opts = session_options(threads, optimization, execution, arena, mem_pattern, spinning)
         try:
             import onnxruntime as ort
@@ -147,7 +177,9 @@ class RewardModel:
             _embed=sessions[0],
             _score=sessions[1],
             _score_inputs=tuple(i.name for i in sessions[1].get_inputs()),
+            _head=sessions[2] if has_head else None,
             precision=precision,
+            reuse_translations=reuse_translations,
         )
 
     def embed(self, points: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,19 +207,24 @@ class RewardModel:
             "target_features": target_features,
             "target_centroid": target_centroid,
         }
-        return self._score.run(None, {name: feeds[name] for name in self._score_inputs})[0]
+        return self._score.run(["rewards"], {name: feeds[name] for name in self._score_inputs})[0]
 
     def score_fn(self, target: npt.ArrayLike) -> ScoreFn:
         """A ``score_fn`` for one registration onto ``target: (M, 3)`` (embedded here, once).
 
         The feeds are built once: the target's points, features and centroid and the source's kNN graph
         (computed on the first call: the agent only moves the source rigidly) never change; each step
-        only copies the moved source into a preallocated float32 buffer.
+        only copies the moved source into a preallocated float32 buffer. A source that is only translated
+        since the previous call is re-scored by the head graph from the cached pair features. The
+        function counts its calls in ``score.calls``: ``{"full": ..., "head": ...}``.
         """
         t_pts = np.ascontiguousarray(np.asarray(target, dtype=np.float32)[None])
         t_feat, t_cen, _ = self.embed(t_pts)
         feeds: dict[str, np.ndarray] = {}
         run = self._score.run
+        head = self._head if self.reuse_translations else None
+        cache: dict[str, np.ndarray] = {}  # "centred": (N, 3) of the last full call, "pair": its pair features
+        calls = {"full": 0, "head": 0}
 
         def score(source: np.ndarray, _target: np.ndarray) -> np.ndarray:
             if not feeds:
@@ -203,8 +240,21 @@ class RewardModel:
                 feeds.update({name: all_feeds[name] for name in self._score_inputs})
             else:
                 feeds["points"][0] = source  # cast to float32 in place: no allocation per step
-            return run(None, feeds)[0][0]
+            if head is None:
+                calls["full"] += 1
+                return run(None, feeds)[0][0]
+            pts = feeds["points"][0]
+            centroid = pts.mean(axis=0, keepdims=True)
+            centred = pts - centroid
+            if cache and np.abs(centred - cache["centred"]).max() <= SAME_SHAPE_ATOL:
+                calls["head"] += 1
+                return head.run(None, {"pair_features": cache["pair"], "offset": centroid - t_cen})[0][0]
+            calls["full"] += 1
+            rewards, pair = run(None, feeds)
+            cache["centred"], cache["pair"] = centred, pair
+            return rewards[0]
 
+        score.calls = calls  # type: ignore[attr-defined]
         return score
 
     def batch_score_fn(self, target: npt.ArrayLike) -> BatchScoreFn:

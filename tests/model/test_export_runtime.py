@@ -140,3 +140,59 @@ def test_shipped_model_is_its_committed_checkpoint():
             torch.from_numpy(knn_indices(tgt[None], model.k)),
         )[0].numpy()
     np.testing.assert_allclose(model.score_fn(tgt)(src, tgt), ref, rtol=1e-4, atol=1e-5)
+
+
+def _torch_rewards(net, src, tgt, k=16):
+    with torch.no_grad():
+        return net(
+            torch.from_numpy(src[None]),
+            torch.from_numpy(knn_indices(src[None], k)),
+            torch.from_numpy(tgt[None]),
+            torch.from_numpy(knn_indices(tgt[None], k)),
+        )[0].numpy()
+
+
+def test_translated_sources_are_rescored_by_the_head_alone(exported):
+    """After a translation the runtime runs only head.onnx on the cached pair features; the rewards are the
+    network's for the translated source (torch reference), and a rotation brings back a full call."""
+    from scipy.spatial.transform import Rotation
+
+    net, out = exported
+    assert net.cfg.center_inputs and "head.onnx" in read_card(out)["files"]
+    model = RewardModel.load(out, threads=1)
+    rng = np.random.default_rng(4)
+    src = rng.standard_normal((128, 3)) * 0.4
+    tgt = (src @ Rotation.from_euler("z", 30, degrees=True).as_matrix().T + 0.2).astype(np.float32)
+    fn = model.score_fn(tgt)
+    R = Rotation.from_euler("x", 10, degrees=True).as_matrix()
+    moves = [np.zeros(3), [0.1, 0, 0], [0.1, -0.1, 0], "rotate", [0.1, -0.1, 0.01], [0.1, -0.1, 0.02]]
+    poses, pose = [], src.copy()
+    for move in moves:
+        pose = (pose - pose.mean(0)) @ R.T + pose.mean(0) if isinstance(move, str) else pose + np.asarray(move)
+        poses.append(pose)
+    got = [fn(p, tgt) for p in poses]
+    assert fn.calls == {"full": 2, "head": 4}  # first call and the rotation are full calls
+    for p, g in zip(poses, got, strict=True):
+        np.testing.assert_allclose(g, _torch_rewards(net, p.astype(np.float32), tgt), rtol=1e-4, atol=2e-5)
+    # The translation changes the rewards (the head sees the offset): the cached path is not a stale answer.
+    assert np.abs(got[1] - got[0]).max() > 1e-3
+    plain = RewardModel.load(out, threads=1, reuse_translations=False).score_fn(tgt)
+    for p, g in zip(poses, got, strict=True):
+        np.testing.assert_allclose(plain(p, tgt), g, rtol=1e-4, atol=2e-5)
+    assert plain.calls == {"full": 6, "head": 0}
+
+
+def test_models_without_a_head_graph_still_load(exported, tmp_path):
+    """A model directory exported before head.onnx existed scores every step with score.onnx."""
+    _, out = exported
+    old = tmp_path / "old"
+    shutil.copytree(out, old)
+    (old / "head.onnx").unlink()
+    card = json.loads((old / "card.json").read_text())
+    del card["files"]["head.onnx"]
+    (old / "card.json").write_text(json.dumps(card))
+    model = RewardModel.load(old, threads=1)
+    tgt = np.random.default_rng(5).standard_normal((128, 3)).astype(np.float32)
+    fn = model.score_fn(tgt)
+    a, b = fn(tgt, tgt), fn(tgt + 0.1, tgt)
+    assert fn.calls == {"full": 2, "head": 0} and np.abs(a - b).max() > 1e-3
