@@ -793,6 +793,9 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
             ),
         }
         extra_fns: dict[str, MethodFn] = {}
+        # Every step through score.onnx (no head-only re-scoring of translated sources): what that reuse buys.
+        scorer_full = RewardModel.load(model_dir, threads=args.threads, reuse_translations=False)
+        extra_fns["pranet-full"] = pranet_method(scorer_full, icp, schedule=args.steps)
         if args.early_stop:
             extra_fns["pranet-es"] = pranet_method(scorer, icp, early_stop=True, schedule=args.steps)
         drift: DriftScorer | None = None
@@ -838,12 +841,14 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
             for s in args.settings
         }
 
-        # Early stop and int8 ran agent + ICP once per pair: v2 is that run, v1 its agent result (minus ICP time).
+        # Early stop, int8 and no-reuse ran agent + ICP once per pair: v2 is that run, v1 its agent result
+        # (minus ICP time).
+        tags = {"pranet-es": "early stop", "pranet-int8": "int8", "pranet-full": "no head reuse"}
         derived: list[Record] = []
         for r in records:
-            if r.method not in ("pranet-es", "pranet-int8"):
+            if r.method not in tags:
                 continue
-            tag = "early stop" if r.method == "pranet-es" else "int8"
+            tag = tags[r.method]
             pair = pairs[r.setting][r.pair]
             if r.error is not None:
                 derived += [replace(r, method=f"pranet-v1 {tag}"), replace(r, method=f"pranet-v2 {tag}")]
@@ -851,7 +856,7 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
             v1 = Outcome(r.extra["agent_transform"], r.ms - r.extra["timing_ms"].get("icp", 0.0), r.extra)
             derived += [score_pair(f"pranet-v1 {tag}", r.setting, r.pair, pair, v1, None)]
             derived += [replace(r, method=f"pranet-v2 {tag}")]
-        variants = [f"pranet-{v} {tag}" for tag in ("early stop", "int8") for v in ("v1", "v2")]
+        variants = [f"pranet-{v} {tag}" for tag in tags.values() for v in ("v1", "v2")]
         result["variants"] = {
             s: {m: summarize([r for r in derived if r.setting == s and r.method == m]) for m in variants}
             for s in args.settings
@@ -1121,10 +1126,12 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
 
     variants = result.get("variants", {})
     if variants and any(v["n"] for s in variants for v in variants[s].values()):
-        out.append("\n## Early stop and int8 against the default (fp32, all steps)\n")
+        out.append("\n## Early stop, int8 and head reuse against the default (fp32, all steps)\n")
         out.append(
             "Early stop: a scale ends when no action has a positive predicted reward. int8: dynamically "
-            f"quantized graphs ({result.get('int8_source', '')}). v1 = agent only, v2 = agent + ICP."
+            f"quantized graphs ({result.get('int8_source', '')}). No head reuse: every step runs score.onnx "
+            "(the default re-scores a source that was only translated with head.onnx). v1 = agent only, "
+            "v2 = agent + ICP."
         )
         rows = []
         for s in settings:

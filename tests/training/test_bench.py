@@ -95,8 +95,12 @@ def test_breakdown_flops_ort_int8_early_stop_and_throughput_are_reported(bench_r
     assert len(variants) == len(bench.ORT_VARIANTS) and "int8" in variants
     assert all(_finite(c) for r in variants.values() for c in r[1:5])
 
-    names = {r[1] for r in _rows(text, "Early stop and int8")}
-    assert names >= {"pranet-v1 early stop", "pranet-v2 early stop", "pranet-v1 int8", "pranet-v2 int8"}
+    names = {r[1] for r in _rows(text, "Early stop, int8 and head reuse")}
+    assert names >= {f"pranet-{v} {t}" for v in ("v1", "v2") for t in ("early stop", "int8", "no head reuse")}
+    # Re-scoring translated sources with the head alone changes no decision: same result as every step in full.
+    for s in ("noisy", "partial"):
+        full, reused = doc["variants"][s]["pranet-v2 no head reuse"], doc["summary"][s]["pranet-v2"]
+        assert full["rot_median"] == pytest.approx(reused["rot_median"], abs=1e-6)
     drift = doc["int8_drift"]
     assert drift["states"] == 2 * 4 and 0 <= drift["mean_abs"] <= drift["max_abs"] < 0.05
     assert 0.0 <= drift["argmax_agreement"] <= 1.0
