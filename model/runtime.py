@@ -261,20 +261,60 @@ class RewardModel:
         """A ``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` for one registration onto ``target: (M, 3)``.
 
         The target is embedded once and tiled over ``B``; the rows are one source point set in ``B``
-        poses (the global mode's starts), so the kNN graph of the first row serves every row.
+        poses (the global mode's starts), so the kNN graph of the first row serves every row. A row whose
+        centred points match a row of the previous call (only translated since) is re-scored by the head
+        graph; the others go through ``score.onnx`` together. Counts in ``score.calls`` (rows).
         """
         t_pts = np.asarray(target, dtype=np.float32)[None]  # (1, M, 3)
         t_feat, t_cen, _ = self.embed(t_pts)
         tiled: dict[int, tuple[np.ndarray, ...]] = {}  # B -> (knn, target points, features, centroid) tiled
+        head = self._head if self.reuse_translations else None
+        cache: dict[str, np.ndarray] = {}  # "centred": (B', N, 3) and "pair": (B', P) of the previous call
+        calls = {"full": 0, "head": 0}
 
-        def score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
-            pts = np.ascontiguousarray(sources, dtype=np.float32)  # (B, N, 3)
+        def full(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             b = len(pts)
             if b not in tiled:
                 knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.k)  # (1, N, k)
                 tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, t_pts, t_feat, t_cen))
-            return self.score(pts, *tiled[b])
+            knn, tp, tf, tc = tiled[b]
+            feeds = {"points": pts, "knn": knn, "target_points": tp, "target_features": tf, "target_centroid": tc}
+            names = ["rewards", "pair_features"] if head is not None else ["rewards"]
+            out = self._score.run(names, {name: feeds[name] for name in self._score_inputs})
+            calls["full"] += b
+            return out[0], (out[1] if head is not None else np.empty((b, 0), np.float32))
 
+        def score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
+            pts = np.ascontiguousarray(sources, dtype=np.float32)  # (B, N, 3)
+            if head is None:
+                return full(pts)[0]
+            centroids = pts.mean(axis=1, keepdims=True)  # (B, 1, 3)
+            centred = pts - centroids
+            match = np.full(len(pts), -1)
+            if cache:
+                d = np.abs(centred[:, None] - cache["centred"][None]).max(axis=(2, 3))  # (B, B')
+                best = d.argmin(axis=1)
+                match = np.where(d[np.arange(len(pts)), best] <= SAME_SHAPE_ATOL, best, -1)
+            rewards = np.empty((len(pts), len(self.table)), dtype=np.float32)
+            pair = np.empty((len(pts), 0), dtype=np.float32)
+            new = np.flatnonzero(match < 0)
+            if len(new):
+                r_new, p_new = full(pts[new])
+                rewards[new] = r_new
+                pair = np.empty((len(pts), p_new.shape[1]), dtype=np.float32)
+                pair[new] = p_new
+            old = np.flatnonzero(match >= 0)
+            if len(old):
+                cached = cache["pair"][match[old]]
+                pair = pair if pair.shape[1] else np.empty((len(pts), cached.shape[1]), dtype=np.float32)
+                pair[old] = cached
+                offsets = centroids[old, 0] - t_cen
+                rewards[old] = head.run(None, {"pair_features": cached, "offset": offsets})[0]
+                calls["head"] += len(old)
+            cache["centred"], cache["pair"] = centred, pair
+            return rewards
+
+        score.calls = calls  # type: ignore[attr-defined]
         return score
 
     def info(self) -> dict[str, Any]:

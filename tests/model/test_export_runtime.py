@@ -196,3 +196,24 @@ def test_models_without_a_head_graph_still_load(exported, tmp_path):
     fn = model.score_fn(tgt)
     a, b = fn(tgt, tgt), fn(tgt + 0.1, tgt)
     assert fn.calls == {"full": 2, "head": 0} and np.abs(a - b).max() > 1e-3
+
+
+def test_batched_rows_that_only_moved_are_rescored_by_the_head(exported):
+    """Global mode's batch: rows only translated since the previous call (also after the batch shrank) take the
+    head path; rotated rows a full call; the rewards equal those of score.onnx for every row."""
+    from scipy.spatial.transform import Rotation
+
+    _, out = exported
+    rng = np.random.default_rng(6)
+    src = rng.standard_normal((128, 3)) * 0.4
+    tgt = (src + 0.1).astype(np.float32)
+    starts = np.stack([src @ Rotation.from_euler("y", a, degrees=True).as_matrix().T for a in (0, 40, 80)])
+    turn = Rotation.from_euler("z", 10, degrees=True).as_matrix()
+    second = starts + [0.1, 0.0, 0.0]  # every row translated
+    second[1] = (starts[1] - starts[1].mean(0)) @ turn.T + starts[1].mean(0)  # ... except row 1, rotated
+    third = second[[0, 2]] + [0.0, 0.01, 0.0]  # row 1 left the batch; the others translated again
+    fast = RewardModel.load(out, threads=1).batch_score_fn(tgt)
+    plain = RewardModel.load(out, threads=1, reuse_translations=False).batch_score_fn(tgt)
+    for batch in (starts, second, third):
+        np.testing.assert_allclose(fast(batch, tgt), plain(batch, tgt), rtol=1e-4, atol=2e-5)
+    assert fast.calls == {"full": 3 + 1, "head": 2 + 2} and plain.calls == {"full": 8, "head": 0}
