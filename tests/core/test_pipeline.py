@@ -178,3 +178,30 @@ def test_restarts_around_the_estimate_rescue_a_rotation_beyond_reach():
     start_angle = np.degrees(np.linalg.norm(Rotation.from_matrix(reg.initial_transform[:3, :3]).as_rotvec()))
     assert start_angle == pytest.approx(30.0)
     np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_transform)
+
+
+def test_timing_stages_are_non_negative_and_add_up_to_the_total():
+    """The breakdown pranet-bench reports: with exit checks that do not exit (ICP after 20 and 40 steps, then the
+    final ICP) every stage is >= 0 and the stages account for the total."""
+    import time
+
+    src, tgt, T = rotated_problem(40.0)
+
+    def slow_icp(s, t, init):  # 5 ms per call: a negative stage would show it counted twice
+        time.sleep(0.005)
+        return snapping_icp(np.eye(4), 0.0)(s, t, init)
+
+    reg = register(
+        src,
+        tgt,
+        RangeLimitedOracle(src, tgt, T),
+        np.random.default_rng(0),
+        icp=slow_icp,
+        exit_checks=(20, 40),
+        confidence_threshold=1.01,
+    )
+    t = reg.timing_ms
+    stages = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence", "rescue")
+    assert all(t[k] >= 0.0 for k in stages), t
+    assert t["icp"] >= 3 * 5.0  # two checks and the final refinement
+    assert sum(t[k] for k in stages) == pytest.approx(t["total"], rel=0.05, abs=0.5)
