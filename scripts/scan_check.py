@@ -1,23 +1,28 @@
-"""Register the bunny scans bun045 (source) -> bun000 (target) in-process and score against ``bun.conf``.
+"""Register the real scans in ``../shared/data/scans`` in-process and score them against their ground truth.
 
-    python scripts/scan_check.py [--model DIR]
+    python scripts/scan_check.py [--model DIR] [--threads 1]
 
-Ground truth as ``../shared/data/scans/SOURCES.md`` describes: each ``bmesh`` line maps its scan into
-the common frame as ``p_world = R(q)ᵀ p + t``; ``T_target_source = inv(T_world_bun000) @ T_world_bun045``.
+Pairs: bunny bun045 -> bun000 and bun090 -> bun000 (``bun.conf``), the 3DMatch fragments (``3dmatch_gt.txt``).
+Modes: PRANet-v2 as the paper (60 steps, ICP) and the service's default (exit checks, rescue). Prints one row
+per pair and mode: errors, confidence, wall time and where it went.
+
+Bunny ground truth as ``SOURCES.md`` describes: each ``bmesh`` line maps its scan into the common frame as
+``p_world = R(q)ᵀ p + t``; ``T_target_source = inv(T_world_target) @ T_world_source``.
 """
 
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pranet.client.io import read_point_cloud
 from pranet.core.metrics import isotropic_errors
-from pranet.core.pipeline import register
+from pranet.core.pipeline import DEFAULT_EXIT_CHECKS, register
 from pranet.model.runtime import RewardModel
-from pranet.service.icp import make_icp
+from pranet.service.icp import make_icp, make_rescue_icp
 from pranet.training.data import data_dir
 
 
@@ -33,19 +38,48 @@ def scan_poses(conf: str) -> dict[str, np.ndarray]:
     return poses
 
 
+def pairs(scans):
+    poses = scan_poses(str(scans / "bun.conf"))
+    for src in ("bun045.ply", "bun090.ply"):
+        T = np.linalg.inv(poses["bun000.ply"]) @ poses[src]
+        yield f"bunny {src[:6]} -> bun000", scans / src, scans / "bun000.ply", T, 1000.0, "mm"
+    T = np.loadtxt(scans / "3dmatch_gt.txt")
+    yield "3DMatch src -> ref", scans / "3dmatch_src.ply", scans / "3dmatch_ref.ply", T, 100.0, "cm"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", default=None)
+    ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
-    scans = data_dir() / "scans"
-    poses = scan_poses(str(scans / "bun.conf"))
-    T_gt = np.linalg.inv(poses["bun000.ply"]) @ poses["bun045.ply"]
-    source, target = read_point_cloud(scans / "bun045.ply"), read_point_cloud(scans / "bun000.ply")
-    reg = register(source, target, RewardModel.load(args.model, threads=1), np.random.default_rng(0), icp=make_icp())
-    for name, T in (("initial", np.eye(4)), ("agent", reg.agent_transform), ("agent + ICP", reg.transform)):
-        rot, trans = isotropic_errors(T, T_gt)
-        print(f"{name:12s} rotation error {rot:6.2f}°  translation error {trans * 1000:6.1f} mm")
-    print(f"confidence {reg.confidence.score:.2f} ({reg.confidence.status})" if reg.confidence else "")
+    model = RewardModel.load(args.model, threads=args.threads)
+    icp, rescue = make_icp(), make_rescue_icp()
+    modes = {
+        "v2 (60 steps + ICP)": {},
+        "service default": {"exit_checks": DEFAULT_EXIT_CHECKS, "rescue_icp": rescue, "rescue_restarts": True},
+    }
+    print(f"model {model.info()['name']} {model.info()['version']} ({model.info()['sha256'][:12]})")
+    print("| pair | points | mode | rot err (°) | trans err | agent rot err (°) | confidence | ms | where (ms) |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for name, src_path, tgt_path, T_gt, unit, unit_name in pairs(data_dir() / "scans"):
+        source, target = read_point_cloud(src_path), read_point_cloud(tgt_path)
+        rot0, trans0 = isotropic_errors(np.eye(4), T_gt)
+        sizes = f"{len(source)} / {len(target)}"
+        print(f"| {name} | {sizes} | initial | {rot0:.2f} | {trans0 * unit:.1f} {unit_name} | | | | |")
+        for mode, kw in modes.items():
+            register(source, target, model, np.random.default_rng(0), icp=icp, **kw)  # warm (caches, pages)
+            t0 = time.perf_counter()
+            reg = register(source, target, model, np.random.default_rng(0), icp=icp, **kw)
+            ms = (time.perf_counter() - t0) * 1e3
+            rot, trans = isotropic_errors(reg.transform, T_gt)
+            agent_rot, _ = isotropic_errors(reg.agent_transform, T_gt)
+            where = ", ".join(f"{k} {v:.0f}" for k, v in reg.timing_ms.items() if k != "total" and v >= 0.5)
+            conf = f"{reg.confidence.score:.2f} ({reg.confidence.status})" if reg.confidence else ""
+            rescued = f", rescued by {reg.rescued}" if reg.rescued else ""
+            print(
+                f"| {name} | | {mode} | {rot:.2f} | {trans * unit:.1f} {unit_name} | {agent_rot:.2f} | {conf}{rescued} "
+                f"| {ms:.0f} | {where} |"
+            )
 
 
 if __name__ == "__main__":

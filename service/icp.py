@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pranet.core.confidence import subsample
 from pranet.core.pipeline import IcpResult
 from pranet.core.se3 import Array
 
@@ -15,8 +16,12 @@ DEFAULT_REFINE_DISTANCE = 0.05
 # The rescue of unconfident results: ICP from the input pose with a wide window (that of the ICP baseline),
 # refined afterwards by the pipeline's own ICP.
 RESCUE_MAX_DISTANCE = 0.5
-DEFAULT_VOXEL = 0.01  # downsample larger clouds before ICP
+DEFAULT_VOXEL = 0.01  # downsample larger targets before ICP
 MAX_POINTS_BEFORE_VOXEL = 20000
+# ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed
+# random subset of 5000 is 3x faster on the 40k-point bunny scans and no less accurate (0.57° against 1.04° with
+# the 0.01 voxel grid; scripts/scan_check.py). ModelNet40 clouds (<= 1024 points) are not touched.
+MAX_SOURCE_POINTS = 5000
 
 
 def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
@@ -46,9 +51,7 @@ def make_icp(
     criteria = reg.ICPConvergenceCriteria(max_iteration=max_iterations)
 
     def icp(source: Array, target: Array, init: Array) -> IcpResult:
-        src, tgt = to_o3d(source), to_o3d(target)
-        if len(source) > MAX_POINTS_BEFORE_VOXEL:
-            src = src.voxel_down_sample(DEFAULT_VOXEL)
+        src, tgt = to_o3d(subsample(source, MAX_SOURCE_POINTS, seed=3)), to_o3d(target)
         if len(target) > MAX_POINTS_BEFORE_VOXEL:
             tgt = tgt.voxel_down_sample(DEFAULT_VOXEL)
         if method == "point_to_plane":

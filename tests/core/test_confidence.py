@@ -2,7 +2,6 @@ import time
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from pranet.core.confidence import ConfidenceEstimator, estimate_confidence, nearest_distances, subsample
@@ -18,12 +17,29 @@ def _shape(rng, n):
     return p / np.linalg.norm(p, axis=1).max()
 
 
-def test_nearest_distances_match_a_kd_tree():
+@pytest.mark.parametrize("scipy_tree", [True, False], ids=["kd-tree", "numpy brute force"])
+def test_nearest_distances_match_all_pairs_distances(scipy_tree, monkeypatch):
+    """Both paths (scipy's KD-tree, the numpy fallback without scipy) against the full distance matrix."""
+    from scipy.spatial.distance import cdist
+
+    if not scipy_tree:
+        import builtins
+
+        real_import = builtins.__import__
+
+        def no_scipy(name, *args, **kwargs):
+            if name.startswith("scipy"):
+                raise ImportError(name)
+            return real_import(name, *args, **kwargs)
+
+        monkeypatch.setattr(builtins, "__import__", no_scipy)
     rng = np.random.default_rng(0)
     a, b = rng.standard_normal((700, 3)), rng.standard_normal((900, 3))
-    np.testing.assert_allclose(nearest_distances(a, b, chunk=128), cKDTree(b).query(a)[0], atol=1e-9)
+    full_ab, full_bb = cdist(a, b), cdist(b, b)
+    np.testing.assert_allclose(nearest_distances(a, b, chunk=128), full_ab.min(1), atol=1e-6)
     # exclude_self: a point's distance to itself does not count
-    np.testing.assert_allclose(nearest_distances(b, b, exclude_self=True), cKDTree(b).query(b, k=2)[0][:, 1], atol=1e-6)
+    np.fill_diagonal(full_bb, np.inf)
+    np.testing.assert_allclose(nearest_distances(b, b, exclude_self=True), full_bb.min(1), atol=1e-6)
 
 
 def test_subsample_is_a_fixed_subset():
