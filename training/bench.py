@@ -174,6 +174,9 @@ def pranet_method(
         )
         ms = (time.perf_counter() - t0) * 1e3
         extra = {"timing_ms": reg.timing_ms, "n_steps": len(reg.trajectory), "agent_transform": reg.agent_transform}
+        if reg.agent is not None:  # steps after a translation: re-scored by head.onnx when the runtime reuses
+            moved = set(np.asarray(scorer.table.translation_indices).tolist())
+            extra["after_translation"] = sum(a.action in moved for a in reg.agent.steps[:-1])
         return Outcome(reg.transform, ms, extra)
 
     return run
@@ -868,7 +871,7 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
 
         # Per-step costs, FLOPs, sgemm.
         src_u, tgt_u = unit_clouds(pairs[args.settings[0]][0], scorer.n_points, args.seed)
-        result["flops"] = flops_table(model_dir, scorer, src_u, tgt_u, records)
+        result["flops"] = flops_table(model_dir, scorer_full, src_u, tgt_u, records)
         result["sgemm"] = sgemm_table(args.threads)
         if args.ort_calls > 0:
             log(args, "onnxruntime options")
@@ -905,9 +908,14 @@ def unit_clouds(pair: Pair, n_points: int, seed: int) -> tuple[Array, Array]:
 
 
 def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, records: Sequence[Record]) -> dict:
-    """FLOPs per call of both graphs, the measured time per call and per agent step, the achieved GFLOP/s."""
+    """FLOPs per call of the graphs, the measured time per call and per agent step, the achieved GFLOP/s.
+
+    ``scorer`` must not reuse pair features (``reuse_translations=False``): the timed calls repeat one pose.
+    An agent step's FLOPs average score.onnx and head.onnx calls by the share of steps after a translation
+    in the pranet-v1 records (what the default runtime re-scores with the head alone).
+    """
     from pranet.core.knn import knn_indices
-    from pranet.model.runtime import graph_files
+    from pranet.model.runtime import HEAD_GRAPH, graph_files
 
     embed_file, score_file = graph_files("fp32")
     pts = np.asarray(source, dtype=np.float32)[None]
@@ -924,7 +932,7 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
     fl_embed = graph_flops(model_dir / embed_file, {"points": tpts, "knn": tknn})
     f = scorer.score_fn(target)
     f(source, target)
-    score_ms, embed_ms = [], []
+    score_ms, embed_ms, head_ms = [], [], []
     for _ in range(50):
         t0 = time.perf_counter()
         f(source, target)
@@ -933,21 +941,35 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
         t0 = time.perf_counter()
         scorer.embed(tpts)
         embed_ms.append((time.perf_counter() - t0) * 1e3)
-    step_ms = median(
-        [
-            r.extra["timing_ms"]["agent_steps"] / r.extra["n_steps"]
-            for r in records
-            if r.method == "pranet-v1" and r.error is None and r.extra.get("n_steps")
-        ]
-    )
+    head_flops = math.nan
+    if (model_dir / HEAD_GRAPH).is_file():
+        import onnxruntime as ort
+
+        full = ort.InferenceSession(str(model_dir / score_file), providers=["CPUExecutionProvider"])
+        pair = full.run(["pair_features"], {i.name: score_feeds[i.name] for i in full.get_inputs()})[0]
+        head_feeds = {"pair_features": pair, "offset": np.zeros((1, 3), np.float32)}
+        head_flops = graph_flops(model_dir / HEAD_GRAPH, head_feeds)["flops"]
+        head = ort.InferenceSession(str(model_dir / HEAD_GRAPH), providers=["CPUExecutionProvider"])
+        for _ in range(50):
+            t0 = time.perf_counter()
+            head.run(None, head_feeds)
+            head_ms.append((time.perf_counter() - t0) * 1e3)
+    v1 = [r for r in records if r.method == "pranet-v1" and r.error is None and r.extra.get("n_steps")]
+    step_ms = median([r.extra["timing_ms"]["agent_steps"] / r.extra["n_steps"] for r in v1])
+    share = sum(r.extra.get("after_translation", 0) for r in v1) / max(1, sum(r.extra["n_steps"] for r in v1))
+    step_flops = fl_score["flops"] if math.isnan(head_flops) else (1 - share) * fl_score["flops"] + share * head_flops
     return {
         "score_flops": fl_score["flops"],
         "score_target_only_flops": fl_score["target_only_flops"],
         "score_by_op": fl_score["by_op"],
         "embed_flops": fl_embed["flops"],
+        "head_flops": head_flops,
         "score_ms": median(score_ms),
         "embed_ms": median(embed_ms),
+        "head_ms": median(head_ms) if head_ms else math.nan,
         "agent_step_ms": step_ms,
+        "agent_step_flops": step_flops,
+        "head_step_share": share,
     }
 
 
@@ -1076,11 +1098,19 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
             f"({fmt(best)} GFLOP/s at {env['threads']} threads)."
         )
         rows = []
+        share = fl.get("head_step_share", 0.0)
         for label, flops, ms in (
-            ("score.onnx, one call (= one agent step)", fl["score_flops"], fl["score_ms"]),
-            ("agent step incl. Python (agent_steps / steps)", fl["score_flops"], fl["agent_step_ms"]),
+            ("score.onnx, one call (a step after a rotation)", fl["score_flops"], fl["score_ms"]),
+            ("head.onnx, one call (a step after a translation)", fl.get("head_flops", math.nan), fl.get("head_ms")),
+            (
+                f"agent step incl. Python (agent_steps / steps; {100 * share:.0f} % after a translation)",
+                fl.get("agent_step_flops", fl["score_flops"]),
+                fl["agent_step_ms"],
+            ),
             ("embed.onnx (target, once per registration)", fl["embed_flops"], fl["embed_ms"]),
         ):
+            if flops is None or not math.isfinite(flops):
+                continue
             g = flops / ms / 1e6 if ms and math.isfinite(ms) else math.nan
             rows.append([label, flops / 1e6, ms, g, f"{100 * g / best:.0f}" if math.isfinite(best) else "-"])
         out.append(md_table(["what", "MFLOP", "ms", "GFLOP/s", "% of sgemm"], rows))

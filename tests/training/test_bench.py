@@ -87,6 +87,10 @@ def test_breakdown_flops_ort_int8_early_stop_and_throughput_are_reported(bench_r
 
     flops = doc["flops"]
     assert flops["score_flops"] > 1e6 and 0 < flops["score_target_only_flops"] < flops["score_flops"]
+    # The shipped model has head.onnx: a step after a translation costs the MLP heads alone.
+    assert 0 < flops["head_flops"] < flops["score_flops"] / 20
+    assert flops["head_flops"] <= flops["agent_step_flops"] <= flops["score_flops"]
+    assert 0.0 <= flops["head_step_share"] <= 1.0
     assert all(_finite(c) for r in _rows(text, "Reward net") for c in r[1:4])
     sgemm = _rows(text, "This CPU's sgemm")
     assert {r[0] for r in sgemm} >= {"numpy float32 matmul"} and all(float(r[3]) > 0 for r in sgemm)
