@@ -48,7 +48,15 @@ def test_int8_graphs_are_listed_with_their_sha256(int8_dir):
     made_from = card["quantization"]["from"]
     assert {"embed.onnx", "score.onnx"} <= set(made_from) and all(made_from[n] == card["files"][n] for n in made_from)
     assert ("head.int8.onnx" in card["files"]) == ("head.onnx" in made_from)
-    assert (int8_dir / "score.int8.onnx").stat().st_size < (int8_dir / "score.onnx").stat().st_size / 2
+    # Weights of the embedding, attention and correspondence are int8; the MLP heads (about half the parameters)
+    # stay fp32, so the head graph has no integer MatMul at all (19 = 7 embedding, 10 attention, 2 correspondence).
+    import onnx
+
+    assert (int8_dir / "score.int8.onnx").stat().st_size < 0.75 * (int8_dir / "score.onnx").stat().st_size
+    ops = {
+        g: [n.op_type for n in onnx.load(str(int8_dir / g)).graph.node] for g in ("score.int8.onnx", "head.int8.onnx")
+    }
+    assert ops["score.int8.onnx"].count("MatMulInteger") == 19 and "MatMulInteger" not in ops["head.int8.onnx"]
 
 
 def test_int8_rewards_are_close_to_fp32(int8_dir):
@@ -62,8 +70,9 @@ def test_int8_rewards_are_close_to_fp32(int8_dir):
         assert r8.shape == r32.shape and np.isfinite(r8).all()
         diffs.append(np.abs(r32 - r8).max())
         same_argmax += int(np.argmax(r32) == np.argmax(r8))
-    # With 7-bit weights (reduce_range): max |diff| 0.005-0.011 on an AVX2-only CPU, ~2e-3 with VNNI, on rewards
-    # of order 0.3. Full-range int8 weights saturate on AVX2 (0.04-0.066): this bound catches that.
+    # 7-bit weights (reduce_range), MLP heads in fp32: max |diff| 0.004-0.012 on an AVX2-only CPU (pranet-cpu
+    # 1.1.0, rewards of order 0.18). Full-range weights saturate on AVX2 (0.04-0.066), int8 heads drift by up
+    # to 0.04: this bound catches either.
     assert max(diffs) < 0.02, diffs
     assert same_argmax >= 3
 
