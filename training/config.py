@@ -94,7 +94,7 @@ PRESETS: dict[str, TrainConfig] = {
             orientation_max_deg=60.0,
         ),
         optim=OptimConfig(
-            optimizer="adamw", lr=1e-3, weight_decay=1e-4, schedule="cosine", batch_size=16, epochs=20, grad_clip=1.0
+            optimizer="adamw", lr=1e-3, weight_decay=1e-4, schedule="cosine", batch_size=16, epochs=50, grad_clip=1.0
         ),
         threads=2,
     ),
