@@ -29,15 +29,16 @@ def clean_l2(clean_source: npt.ArrayLike, T_est: npt.ArrayLike, T_gt: npt.ArrayL
     )
 
 
-def _nn_sq_dist(a: Array, b: Array, chunk: int = 2048) -> Array:
-    """For each row of ``a: (N, 3)``, the squared distance to its nearest row of ``b: (M, 3)``."""
-    out = np.empty(len(a))
-    bb = (b * b).sum(1)
-    for i in range(0, len(a), chunk):
-        x = a[i : i + chunk]
-        d2 = (x * x).sum(1)[:, None] - 2.0 * x @ b.T + bb[None]
-        out[i : i + chunk] = np.maximum(d2.min(1), 0.0)
-    return out
+def _nn_sq_dist(a: Array, b: Array) -> Array:
+    """For each row of ``a: (N, 3)``, the squared distance to its nearest row of ``b: (M, 3)``.
+
+    ``core.confidence.nearest_distances``: scipy's KD-tree when installed (the evaluation computes MCD for
+    every method and the Fig. 5 Chamfer curve at every step: brute force was two thirds of its time), else
+    chunked numpy brute force.
+    """
+    from pranet.core.confidence import nearest_distances
+
+    return nearest_distances(a, b) ** 2
 
 
 def modified_chamfer(
