@@ -3,7 +3,7 @@
 The baselines and the PRANet rows can come from separate runs (the pairs are seeded by setting and
 index, so every run sees the same pairs); this refuses to merge runs whose pairs differ.
 
-    python scripts/results_tables.py results/baselines-noisy.json.gz results/pranet-noisy.json.gz
+    python scripts/results_tables.py --markdown results/eval-noisy.json.gz   (or a baselines run and a PRANet run)
 """
 
 from __future__ import annotations
