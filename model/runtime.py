@@ -61,6 +61,11 @@ def head_file(precision: str = "fp32") -> str:
     return HEAD_GRAPH if precision == "fp32" else HEAD_INT8_GRAPH
 
 
+def card_graphs(card: dict[str, Any], precision: str = "fp32") -> tuple[str, ...]:
+    """The graph files of ``precision`` that ``card`` describes: embed, score and (when listed) the head."""
+    return graph_files(precision) + ((head_file(precision),) if HEAD_GRAPH in card.get("files", {}) else ())
+
+
 class ModelLoadError(RuntimeError):
     """The model directory is missing, corrupt or does not match this package's action table."""
 
@@ -85,7 +90,7 @@ def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> 
     except (OSError, json.JSONDecodeError) as e:
         raise ModelLoadError(f"unreadable model card {card_path}: {e}") from e
     files = card.get("files", {})
-    graphs = graph_files(precision) + ((head_file(precision),) if HEAD_GRAPH in files else ())
+    graphs = card_graphs(card, precision)
     if precision != "fp32":
         missing = [name for name in graphs if name not in files or not (model_dir / name).is_file()]
         made_from = card.get("quantization", {}).get("from", {})
@@ -94,9 +99,7 @@ def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> 
                 f"no {precision} graphs in {model_dir} (missing or not in the card: {', '.join(missing)}); "
                 f"write them with: pranet-export --int8 --out {model_dir}"
             )
-        if any(
-            made_from.get(name) != files.get(name) for name in GRAPHS + ((HEAD_GRAPH,) if HEAD_GRAPH in files else ())
-        ):
+        if any(made_from.get(name) != files.get(name) for name in card_graphs(card)):
             raise ModelLoadError(
                 f"the {precision} graphs in {model_dir} were made from other fp32 graphs than the card's (stale); "
                 f"re-run: pranet-export --int8 --out {model_dir}"
@@ -153,9 +156,9 @@ class RewardModel:
         """
         model_dir = Path(model_dir) if model_dir else default_model_dir()
         card = read_card(model_dir, verify=verify, precision=precision)
-        graphs = graph_files(precision)
+        # The head re-scores translated sources only when the embedding ignores where a cloud is.
         has_head = HEAD_GRAPH in card.get("files", {}) and bool(card.get("net", {}).get("center_inputs"))
-        graphs += (head_file(precision),) if has_head else ()
+        graphs = card_graphs(card, precision) if has_head else graph_files(precision)
         opts = session_options(threads, optimization, execution, arena, mem_pattern, spinning)
         try:
             import onnxruntime as ort
