@@ -2,7 +2,8 @@
 
     python scripts/compare_icp.py runs/cpu/best.pt 40     # checkpoint, pairs per setting (noisy, partial)
 
-Point-to-point and point-to-plane ICP at 0.05 and 0.1 (unit frame), each from the agent's estimate.
+Single passes of point-to-point and point-to-plane ICP at 0.05 and 0.1 (unit frame), each from the agent's
+estimate (the session-1 comparison; the stage lists of today's ICP: scripts/icp_select.py).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pranet.core.metrics import isotropic_errors
 from pranet.core.pipeline import register
 from pranet.model.export import card_from_checkpoint, export_model, load_checkpoint
 from pranet.model.runtime import RewardModel
-from pranet.service.icp import make_icp
+from pranet.service.icp import POINT_TO_PLANE, POINT_TO_POINT, make_icp
 from pranet.training.data import data_dir, load_modelnet40, test_indices
 from pranet.training.samples import make_pair, pair_rng
 
@@ -30,10 +31,10 @@ def main() -> None:
     data = load_modelnet40(data_dir(), "test")
     idx = test_indices(data.labels)[: int(sys.argv[2])]
     variants = {
-        "point-to-point 0.05": make_icp(0.05),
-        "point-to-point 0.1": make_icp(0.1),
-        "point-to-plane 0.05": make_icp(0.05, method="point_to_plane"),
-        "point-to-plane 0.1": make_icp(0.1, method="point_to_plane"),
+        "point-to-point 0.05": make_icp(((POINT_TO_POINT, 0.05),)),
+        "point-to-point 0.1": make_icp(((POINT_TO_POINT, 0.1),)),
+        "point-to-plane 0.05": make_icp(((POINT_TO_PLANE, 0.05),)),
+        "point-to-plane 0.1": make_icp(((POINT_TO_PLANE, 0.1),)),
     }
     for setting in ("noisy", "partial"):
         errors: dict[str, list[tuple[float, float]]] = {"agent only": [], **{k: [] for k in variants}}

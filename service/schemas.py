@@ -74,7 +74,9 @@ class RegisterRequest(_Strict):
 
     source: Cloud
     target: Cloud
-    icp: bool = Field(True, description="refine the agent's estimate with point-to-point ICP (PRANet-v2)")
+    icp: bool = Field(
+        True, description="refine the agent's estimate with ICP (PRANet-v2): point-to-plane, then point-to-point"
+    )
     policy: Literal["deterministic", "stoch1", "stoch2"] = Field(
         "deterministic", description="action choice: argmax, or one of the paper's stochastic policies"
     )

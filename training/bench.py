@@ -9,7 +9,9 @@ pair_rng(seed, setting, i), 60, 0.5)``, as ``pranet-eval`` builds them), methods
    ``pranet-v2`` (agent + ICP: ``core.pipeline.register`` with ``service.icp.make_icp()``),
    ``pranet-v2-http`` (the same through a real ``pranet-serve`` on a loopback port, base64 clouds,
    client-side latency: encoding, HTTP, JSON), ``icp``, ``fgr-icp``, ``ransac-icp``
-   (``training.baselines``) and ``small-gicp`` (``small_gicp.align``, GICP from the identity);
+   (``training.baselines``), ``ransac-pranet-icp`` (the same RANSAC, refined by ``service.icp.make_icp()``
+   instead of point-to-point ICP: the peer with the service's refinement) and ``small-gicp``
+   (``small_gicp.align``, GICP from the identity);
 2. each method's median latency as a ratio to RANSAC+ICP's and to FGR+ICP's;
 3. where a registration's time goes (``Registration.timing_ms``; HTTP/JSON overhead = client latency
    minus the server's own total);
@@ -68,6 +70,7 @@ METHODS = (
     "icp",
     "fgr-icp",
     "ransac-icp",
+    "ransac-pranet-icp",
     "small-gicp",
 )
 # (in-process, HTTP) method pairs whose time is broken down by stage
@@ -180,6 +183,20 @@ def pranet_method(
         return Outcome(reg.transform, ms, extra)
 
     return run
+
+
+def refined_by(coarse: Callable[[Array, Array, np.random.Generator], Array], icp: Any):
+    """``coarse`` (a baseline without refinement) followed by PRANet's ICP, in the unit frame as the pipeline runs it:
+    the classical peer with the same refinement as the service."""
+    from pranet.core.preprocess import fit_normalization
+
+    def fn(source: Array, target: Array, rng: np.random.Generator) -> Array:
+        T = coarse(source, target, rng)
+        norm = fit_normalization(source, target)
+        refined = icp(norm.to_unit(source), norm.to_unit(target), norm.transform_to_unit(T))
+        return norm.transform_to_world(refined.transform)
+
+    return fn
 
 
 def baseline_method(fn: Callable[[Array, Array, np.random.Generator], Array]) -> MethodFn:
@@ -791,6 +808,7 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
             "icp": baseline_method(baselines.icp),
             "fgr-icp": baseline_method(baselines.fgr_icp),
             "ransac-icp": baseline_method(baselines.ransac_icp),
+            "ransac-pranet-icp": baseline_method(refined_by(baselines.ransac, icp)),
             "small-gicp": baseline_method(
                 lambda s, t, rng: small_gicp_align(s, t, baselines.ICP_MAX_DISTANCE, args.threads)
             ),
@@ -997,6 +1015,7 @@ LABELS = {
     "icp": "Open3D ICP (from identity)",
     "fgr-icp": "FGR + ICP",
     "ransac-icp": "RANSAC + ICP",
+    "ransac-pranet-icp": "RANSAC + PRANet's ICP (the service's refinement)",
     "small-gicp": "small_gicp GICP (from identity)",
 }
 

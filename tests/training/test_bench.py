@@ -119,3 +119,27 @@ def test_flop_count_of_a_known_matmul():
     assert bench.node_flops("Relu", [[10]], [[10]]) == 0
     assert bench.median([1.0, float("nan"), 3.0]) == 2.0 and np.isnan(bench.median([]))
     assert re.fullmatch(r"\| a +\| b +\|\n\|-+\|-+\|\n\| 1 +\| x +\|", bench.md_table(["a", "b"], [[1.0, "x"]]))
+
+
+def test_refined_by_runs_the_service_icp_in_the_unit_frame_and_returns_world_units():
+    """A coarse estimate 4° and 2 cm off on a 100x-scaled shape: the refinement must reach the truth in the
+    clouds' own units (a unit-frame transform returned as is would keep a 100x too small translation)."""
+    from scipy.spatial.transform import Rotation
+
+    from pranet.core.metrics import isotropic_errors
+    from pranet.service.icp import make_icp
+
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((1500, 3))
+    shape = u / np.linalg.norm(u, axis=1, keepdims=True) * [90.0, 60.0, 40.0] + [300.0, -50.0, 20.0]
+    R = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()
+    t = np.array([12.0, -7.0, 3.0])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    source, target = shape[:1000], shape[500:] @ R.T + t
+    off = np.eye(4)
+    off[:3, :3], off[:3, 3] = Rotation.from_rotvec([0.0, np.deg2rad(4.0), 0.0]).as_matrix(), [2.0, 0.0, 0.0]
+    coarse = lambda s, g, r: T @ off  # noqa: E731
+    rot0, trans0 = isotropic_errors(coarse(source, target, rng), T)
+    rot, trans = isotropic_errors(bench.refined_by(coarse, make_icp())(source, target, rng), T)
+    assert rot0 > 3.9 and rot < 0.3 and trans < 1.0 < trans0, (rot0, trans0, rot, trans)  # unit-frame t: ~14 off
