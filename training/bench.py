@@ -541,12 +541,15 @@ def ort_variants_table(
     round_best: dict[str, list[float]] = {label: [] for label, _, _ in variants}
     round_median: dict[str, list[float]] = {label: [] for label, _, _ in variants}
     embed: dict[str, list[float]] = {label: [] for label, _, _ in variants}
+    graph_calls: dict[str, dict[str, int]] = {label: {"full": 0, "head": 0} for label, _, _ in variants}
     per_round = max(1, min(per_round, calls))
     rounds = max(1, calls // per_round)
     for r in range(rounds):
         k = r % len(variants)
         for label, kw, where in variants[k:] + variants[:k]:  # rotated: no variant always runs first
-            model = RewardModel.load(where, **kw)
+            # The same source every call: with head reuse the runtime would re-score it with head.onnx alone
+            # (it has not moved), and this table would time the MLP heads instead of score.onnx.
+            model = RewardModel.load(where, reuse_translations=False, **kw)
             f = model.score_fn(target)
             f(source, target)  # first call: kNN graph, allocations
             this_round = []
@@ -554,6 +557,8 @@ def ort_variants_table(
                 t0 = time.perf_counter()
                 f(source, target)
                 this_round.append((time.perf_counter() - t0) * 1e3)
+            for graph, n in f.calls.items():
+                graph_calls[label][graph] += n
             samples[label] += this_round
             round_best[label].append(min(this_round))
             round_median[label].append(float(np.median(this_round)))
@@ -575,6 +580,7 @@ def ort_variants_table(
             "vs_default": median([a / b for a, b in zip(round_best[label], round_best[default], strict=True)]),
             "vs_default_busy": median([a / b for a, b in zip(round_median[label], round_median[default], strict=True)]),
             "calls": len(samples[label]),
+            "graph_calls": graph_calls[label],  # score.onnx ("full") and head.onnx runs: head must stay 0
         }
         for label, kw, _ in variants
     ]

@@ -143,3 +143,12 @@ def test_refined_by_runs_the_service_icp_in_the_unit_frame_and_returns_world_uni
     rot0, trans0 = isotropic_errors(coarse(source, target, rng), T)
     rot, trans = isotropic_errors(bench.refined_by(coarse, make_icp())(source, target, rng), T)
     assert rot0 > 3.9 and rot < 0.3 and trans < 1.0 < trans0, (rot0, trans0, rot, trans)  # unit-frame t: ~14 off
+
+
+def test_onnxruntime_table_times_score_onnx_not_the_head(bench_run):
+    """The table calls score_fn on one unchanged source; with head reuse on, every call after the first would
+    run head.onnx only (0.1 ms instead of ~5 ms) and the table would time the MLP heads."""
+    _, doc, _ = bench_run
+    assert doc["ort_variants"], "no onnxruntime variants measured"
+    for row in doc["ort_variants"]:
+        assert row["graph_calls"]["head"] == 0 and row["graph_calls"]["full"] >= row["calls"], row
