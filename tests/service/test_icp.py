@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip("open3d")
 
-from pranet.core.metrics import isotropic_errors  # noqa: E402
+from pranet.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION, isotropic_errors  # noqa: E402
 from pranet.service.icp import (  # noqa: E402
     DEFAULT_STAGES,
     POINT_TO_PLANE,
@@ -51,7 +51,7 @@ def far_noisy_pair(seed: int, angle_deg: float = 55.0):
 
 def success(T_est, T_gt) -> bool:
     rot, trans = isotropic_errors(T_est, T_gt)
-    return rot < 1.0 and trans < 0.01
+    return rot < SUCCESS_ROTATION_DEG and trans < SUCCESS_TRANSLATION
 
 
 def test_default_stages_are_point_to_plane_then_point_to_point():
