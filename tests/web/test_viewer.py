@@ -2,7 +2,8 @@
 Chromium against a real ``pranet-serve`` with an API key (``viewer.spec.mjs``, playwright-core).
 
 Needs node, ``npm ci`` in ``tests/web`` and Chromium (``apt-get install chromium``; ``$CHROMIUM`` to
-use another binary); the tests skip, saying which is missing, otherwise. The screenshot goes to
+use another binary); the tests skip, saying which is missing, otherwise, or fail when
+``$PRANET_REQUIRE_BROWSER`` is set (CI sets it: a skipped browser test must not pass). The screenshot goes to
 ``$PRANET_VIEWER_SCREENSHOT`` (default ``tests/web/out/viewer.png``, git-ignored).
 """
 
@@ -30,12 +31,19 @@ SCREENSHOT = Path(os.environ.get("PRANET_VIEWER_SCREENSHOT") or WEB / "out" / "v
 API_KEY = "viewer-test-key"
 
 
+def _missing(reason: str) -> None:
+    """Skip, or fail where the browser test is required (``$PRANET_REQUIRE_BROWSER``, set by ``.ci/run``)."""
+    if os.environ.get("PRANET_REQUIRE_BROWSER"):
+        pytest.fail(f"browser test required but cannot run: {reason}")
+    pytest.skip(reason)
+
+
 def _node() -> str:
     node = shutil.which("node")
     if node is None:
-        pytest.skip("node is not installed (apt-get install nodejs)")
+        _missing("node is not installed (apt-get install nodejs)")
     if not (WEB / "node_modules" / "playwright-core").is_dir():
-        pytest.skip("tests/web/node_modules missing: run `npm ci` in tests/web")
+        _missing("tests/web/node_modules missing: run `npm ci` in tests/web")
     return node
 
 
@@ -152,7 +160,7 @@ def guarded_server(tmp_path_factory: pytest.TempPathFactory):
 def test_viewer_registers_two_ply_files_in_chromium(guarded_server, tmp_path: Path) -> None:
     node = _node()
     if not Path(CHROMIUM).exists():
-        pytest.skip(f"Chromium not found at {CHROMIUM} (apt-get install chromium, or set $CHROMIUM)")
+        _missing(f"Chromium not found at {CHROMIUM} (apt-get install chromium, or set $CHROMIUM)")
     assert httpx.get(f"{guarded_server.url}/").status_code == 200
     rng = np.random.default_rng(1)
     source = rng.normal(size=(1500, 3)) * [1.0, 0.5, 0.25]
