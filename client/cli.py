@@ -177,7 +177,13 @@ def format_summary(result: RegistrationResult, source: Path, target: Path, n_sou
 def plot_registration(
     path: Path, source: npt.ArrayLike, target: npt.ArrayLike, result: RegistrationResult, seed: int = 0
 ) -> Path:
-    """Draw source/target before and after (3-D scatter, subsampled) and per-step curves to ``path``.
+    """Write ``registration_figure(...)`` to ``path`` (PNG)."""
+    registration_figure(source, target, result, seed).savefig(path, dpi=100)
+    return path
+
+
+def registration_figure(source: npt.ArrayLike, target: npt.ArrayLike, result: RegistrationResult, seed: int = 0):
+    """Source/target before and after (3-D scatter, subsampled) and per-step curves, as a matplotlib ``Figure``.
 
     The curves show each trajectory step's ``T_target_source`` against the final transform: the
     rotation angle of ``R_final^T R_step`` (degrees) and ``|t_step - t_final|`` (cloud units).
@@ -239,8 +245,7 @@ def plot_registration(
         + (f"; confidence {result.confidence:.3f}" if result.confidence is not None else "")
         + (f" ({result.status})" if result.status else "")
     )
-    fig.savefig(path, dpi=100)
-    return path
+    return fig
 
 
 def _register(args: argparse.Namespace, client: PranetClient) -> int:

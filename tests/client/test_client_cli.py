@@ -186,6 +186,38 @@ def test_global_mode_options_and_a_plot_with_the_confidence(fake_service, clouds
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_the_plot_draws_the_aligned_source_the_curves_and_the_confidence(clouds) -> None:
+    """What ``--plot`` draws, read back from the figure: the "after" panel holds the source moved by the
+    returned transform (computed here independently), the curves start at the angle between the global
+    start and the result, and the title carries the confidence and status."""
+    from matplotlib.colors import to_rgba
+
+    from pranet.client.client import RegistrationResult
+    from pranet.client.cli import registration_figure
+    from pranet.client.io import read_point_cloud
+
+    start = make_transform(90.0, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+    body = {**canned_response(T_KNOWN, steps=4), "confidence": 0.8, "status": "converged"}
+    result = RegistrationResult.from_json({**body, "initial_transform": start.tolist()})
+    source, target = (read_point_cloud(p) for p in clouds)
+    fig = registration_figure(source, target, result)
+    title = fig.get_suptitle()
+    assert "confidence 0.800 (converged)" in title and "ICP" in title
+    after = fig.axes[1]
+    assert after.get_title() == "after: T_target_source applied"
+    (orange,) = [c for c in after.collections if np.allclose(c.get_facecolor()[0], to_rgba("tab:orange"))]
+    xs, ys, zs = orange._offsets3d
+    drawn = np.column_stack([xs, ys, zs])
+    expected = source @ T_KNOWN[:3, :3].T + T_KNOWN[:3, 3]
+    # Every drawn point is the moved copy of a source point (subsampled, so compare as sets).
+    d = np.linalg.norm(drawn[:, None] - expected[None], axis=-1).min(axis=1)
+    assert d.max() < 1e-6 and len(drawn) == min(len(source), 3000)
+    rotation_curve = fig.axes[2].lines[0].get_ydata()
+    assert len(rotation_curve) == len(result.trajectory) + 1
+    R_gap = T_KNOWN[:3, :3].T @ start[:3, :3]
+    assert rotation_curve[0] == pytest.approx(np.degrees(np.arccos(np.clip((np.trace(R_gap) - 1) / 2, -1, 1))))
+
+
 def test_result_keeps_the_initial_transform() -> None:
     from pranet.client.client import RegistrationResult
 
@@ -193,3 +225,19 @@ def test_result_keeps_the_initial_transform() -> None:
     result = RegistrationResult.from_json({**canned_response(T_KNOWN), "initial_transform": start.tolist()})
     assert_allclose(result.initial_transform, start)
     assert RegistrationResult.from_json(canned_response(T_KNOWN)).initial_transform is None
+
+
+def test_url_and_api_key_come_from_the_environment(fake_service, clouds, monkeypatch, capsys) -> None:
+    """README: `--url` (or `$PRANET_URL`), `--api-key` (or `$PRANET_API_KEY`)."""
+    fake_service.routes[("GET", "/health")] = lambda _: (200, {"status": "ok"})
+    fake_service.routes[("POST", "/register")] = lambda _: (200, canned_response(T_KNOWN))
+    monkeypatch.setenv("PRANET_URL", fake_service.url)
+    monkeypatch.setenv("PRANET_API_KEY", "from-env")
+    assert main(["health"]) == 0
+    assert main(["register", *map(str, clouds)]) == 0
+    assert [r["path"] for r in fake_service.requests] == ["/health", "/register"]
+    assert all(r["headers"].get("Authorization") == "Bearer from-env" for r in fake_service.requests)
+    # A flag still wins over the environment.
+    monkeypatch.setenv("PRANET_URL", "http://127.0.0.1:9")
+    assert main(["health", "--url", fake_service.url]) == 0
+    assert len(fake_service.requests) == 3

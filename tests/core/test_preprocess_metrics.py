@@ -72,6 +72,8 @@ def test_knn_matches_brute_force():
     ref = np.argsort(d, axis=1)[:, :8]
     np.testing.assert_allclose(np.take_along_axis(d, idx, 1), np.take_along_axis(d, ref, 1), atol=1e-6)
     assert (idx[:, 0] == np.arange(100)).all()
-    # Rigid motion leaves the graph unchanged.
+    # Rigid motion leaves the graph unchanged: the same neighbour sets (float32 rounding may swap the order
+    # of two neighbours at almost equal distance, never the set, for points this far apart).
     R = Rotation.random(random_state=2).as_matrix().astype(np.float32)
-    np.testing.assert_array_equal(knn_indices(p @ R.T + 5.0, 8)[:, 1:].shape, idx[:, 1:].shape)
+    moved = knn_indices((p @ R.T + 5.0).astype(np.float32), 8)
+    np.testing.assert_array_equal(np.sort(moved, axis=1), np.sort(ref, axis=1))

@@ -67,8 +67,16 @@ def test_every_method_has_finite_latency_and_a_success_rate(bench_run):
     ratios = _rows(text, "Median latency relative to RANSAC+ICP and FGR+ICP")
     assert {r[0] for r in ratios} == {bench.LABELS[m] for m in bench.METHODS}
     assert all(_finite(c) for r in ratios for c in r[1:])
-    ransac = next(r for r in ratios if r[0] == bench.LABELS["ransac-icp"])
-    assert float(ransac[1]) == pytest.approx(1.0)
+    # Every ratio is the two medians of the raw summary divided (an independent recomputation of the table).
+    settings = list(doc["summary"])
+    for r in ratios:
+        method = next(m for m in doc["summary"][settings[0]] if bench.LABELS.get(m, m) == r[0])
+        expected = [
+            doc["summary"][s][method]["ms_median"] / doc["summary"][s][ref]["ms_median"]
+            for s in settings
+            for ref in ("ransac-icp", "fgr-icp")
+        ]
+        np.testing.assert_allclose([float(c) for c in r[1:]], expected, rtol=2e-3, atol=1e-3)
 
 
 def test_breakdown_flops_ort_int8_early_stop_and_throughput_are_reported(bench_run):
@@ -107,10 +115,14 @@ def test_breakdown_flops_ort_int8_early_stop_and_throughput_are_reported(bench_r
         assert full["rot_median"] == pytest.approx(reused["rot_median"], abs=1e-6)
     drift = doc["int8_drift"]
     assert drift["states"] == 2 * 4 and 0 <= drift["mean_abs"] <= drift["max_abs"] < 0.05
-    assert 0.0 <= drift["argmax_agreement"] <= 1.0
+    # int8 drift of at most 0.05 on unit-normalised rewards cannot flip most decisions: the agent sees the same
+    # best action in most steps (a broken quantization, or comparing the wrong graphs, lands far below).
+    assert drift["argmax_agreement"] >= 0.7, drift
 
     (tp,) = doc["throughput"]
-    assert tp["workers"] == 1 and tp["errors"] == 0 and tp["per_s"] >= 0
+    assert tp["workers"] == 1 and tp["errors"] == 0
+    # Requests answered per second agree with the count and the wall time the run measured.
+    assert tp["completed"] >= 1 and tp["per_s"] > 0 and tp["per_s"] == pytest.approx(tp["completed"] / tp["seconds"], rel=1e-6), tp
 
 
 def test_flop_count_of_a_known_matmul():
