@@ -19,6 +19,13 @@ class NetConfig:
     from the final features (DCP-style attention over target xyz), reduced to a rotation estimate
     (polar factor of the cross-covariance, by Newton-Schulz) and a residual offset that join the
     pooled features at the MLP input.
+    ``matching`` (with ``correspondence``): ``"softmax"`` (DCP: every source point onto a soft target
+    point) or ``"sinkhorn"`` (RPMNet: a doubly-normalised assignment with a slack row and column, so
+    points without a counterpart drop out; affinity from the features and from the current xyz
+    distances, with the sharpness predicted from the pooled features), then a weighted Procrustes.
+    ``reward_head``: ``"mlp"`` (the paper's MLP heads) or ``"analytic"``: the 24 rewards computed in
+    closed form from the estimated residual pose, exactly as ``core.reward.true_rewards`` computes the
+    labels from the true one; needs ``matching="sinkhorn"`` and ``center_inputs``.
     """
 
     n_points: int = 512
@@ -36,6 +43,20 @@ class NetConfig:
     correspondence: bool = False
     mlp_shared: tuple[int, ...] = (256,)
     mlp_head: tuple[int, ...] = (128,)
+    matching: str = "softmax"  # "softmax" | "sinkhorn"
+    sinkhorn_iters: int = 5
+    match_passes: int = 1  # sinkhorn: rounds of matching, each from the previous round's estimate
+    reward_head: str = "mlp"  # "mlp" | "analytic"
+
+    def __post_init__(self) -> None:
+        if self.matching not in ("softmax", "sinkhorn"):
+            raise ValueError(f"unknown matching {self.matching!r}")
+        if self.reward_head not in ("mlp", "analytic"):
+            raise ValueError(f"unknown reward_head {self.reward_head!r}")
+        if self.reward_head == "analytic" and not (
+            self.correspondence and self.matching == "sinkhorn" and self.center_inputs
+        ):
+            raise ValueError("reward_head='analytic' needs correspondence, matching='sinkhorn' and center_inputs")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -151,6 +151,153 @@ class SoftCorrespondence(nn.Module):
         return torch.cat([R.flatten(1), residual], dim=-1)
 
 
+def horn_rotation(H: Tensor, squarings: int = 24) -> Tensor:
+    """The rotation ``R`` maximising ``tr(R H)``, i.e. minimising ``Σ w_i ||R x_i - y_i||²`` for
+    ``H = Σ w_i x_i y_iᵀ: (B, 3, 3)`` (Horn 1987, unit quaternions). Always a proper rotation.
+
+    The quaternion is the top eigenvector of Horn's symmetric ``4×4`` matrix ``N``. ONNX has no
+    eigensolver, so it is found by repeated squaring of ``N + ||N||_F I`` (positive semi-definite,
+    same eigenvectors), which converges to ``q qᵀ`` as ``(λ₂/λ₁)^(2^k)``.
+    """
+    Sxx, Sxy, Sxz = H[:, 0, 0], H[:, 0, 1], H[:, 0, 2]
+    Syx, Syy, Syz = H[:, 1, 0], H[:, 1, 1], H[:, 1, 2]
+    Szx, Szy, Szz = H[:, 2, 0], H[:, 2, 1], H[:, 2, 2]
+    N = torch.stack(
+        [
+            torch.stack([Sxx + Syy + Szz, Syz - Szy, Szx - Sxz, Sxy - Syx], -1),
+            torch.stack([Syz - Szy, Sxx - Syy - Szz, Sxy + Syx, Szx + Sxz], -1),
+            torch.stack([Szx - Sxz, Sxy + Syx, -Sxx + Syy - Szz, Syz + Szy], -1),
+            torch.stack([Sxy - Syx, Szx + Sxz, Syz + Szy, -Sxx - Syy + Szz], -1),
+        ],
+        dim=-2,
+    )  # (B, 4, 4)
+    eye4 = torch.eye(4, dtype=H.dtype, device=H.device)
+    M = N + (N.flatten(1).norm(dim=1).view(-1, 1, 1) + 1e-12) * eye4
+    for _ in range(squarings):
+        M = M @ M
+        M = M / (M.diagonal(dim1=1, dim2=2).sum(-1).view(-1, 1, 1) + 1e-30)
+    # M ≈ q qᵀ: its column with the largest diagonal entry is q_i q, well away from zero.
+    i = M.diagonal(dim1=1, dim2=2).argmax(dim=-1)  # (B,)
+    col = torch.gather(M, 2, i.view(-1, 1, 1).expand(-1, 4, 1)).squeeze(-1)  # (B, 4)
+    w, x, y, z = (col / (col.norm(dim=-1, keepdim=True) + 1e-12)).unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        dim=-2,
+    )
+
+
+def sinkhorn_with_slack(logits: Tensor, iterations: int) -> Tensor:
+    """Soft assignment ``(B, N, M)`` from ``logits: (B, N, M)`` (RPMNet, Eq. 7), in the log domain.
+
+    A slack row and column with logit 0 absorb the points that have no counterpart: rows are
+    normalised over the target points and the slack, columns over the source points and the slack.
+    """
+    padded = nn.functional.pad(logits, (0, 1, 0, 1), value=0.0)  # (B, N+1, M+1)
+    for _ in range(iterations):
+        rows = padded[:, :-1] - torch.logsumexp(padded[:, :-1], dim=2, keepdim=True)
+        padded = torch.cat([rows, padded[:, -1:]], dim=1)
+        cols = padded[:, :, :-1] - torch.logsumexp(padded[:, :, :-1], dim=1, keepdim=True)
+        padded = torch.cat([cols, padded[:, :, -1:]], dim=2)
+    return padded[:, :-1, :-1].exp()
+
+
+def weighted_procrustes(P: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """``y ≈ R x + r`` from a soft assignment ``P: (B, N, M)`` of ``x: (B, N, 3)`` to ``y: (B, M, 3)``.
+
+    Weights ``w_i = Σ_j P_ij`` and points ``ŷ_i = Σ_j P_ij y_j / w_i`` (RPMNet, Eq. 9) -> ``(R (B, 3, 3), r (B, 3))``.
+    """
+    w = P.sum(-1, keepdim=True)  # (B, N, 1)
+    total = w.sum(1) + 1e-6  # (B, 1)
+    x_mean = (w * x).sum(1) / total  # (B, 3)
+    Py = P @ y  # (B, N, 3) = w_i ŷ_i
+    y_mean = Py.sum(1) / total  # (B, 3)
+    H = (x - x_mean.unsqueeze(1)).transpose(1, 2) @ (Py - w * y_mean.unsqueeze(1))  # Σ w_i x̃_i ỹ_iᵀ
+    R = horn_rotation(H)
+    return R, y_mean - (R @ x_mean.unsqueeze(-1)).squeeze(-1)
+
+
+class SinkhornCorrespondence(nn.Module):
+    """The residual pose ``y ≈ R x + r`` of the centred source ``x`` against the centred target ``y``.
+
+    ``passes`` rounds of matching, each from the previous round's estimate (RPMNet's iterations, inside
+    one call): affinity ``β·cos(q_i, k_j) - γ·||x̂_i - y_j||² - α`` with ``x̂`` the source moved by the
+    estimate so far, Sinkhorn with slack, weighted Procrustes, composed onto the estimate. ``(β, γ, α) >= 0``
+    of every round are predicted from the two pooled feature vectors (RPMNet's parameter network): the
+    first round can lean on the features, the later ones on positions, which is what makes the
+    estimate precise near alignment. Returns ``(B, 12)``: ``R`` flattened row-major, then ``r``.
+    """
+
+    # Scales of the predicted (β, γ, α): cosines are in [-1, 1] and squared distances between
+    # neighbours of a unit-sized cloud of a few hundred points are ~1e-2.
+    PARAM_SCALES = (20.0, 200.0, 2.0)
+
+    def __init__(self, dim: int, pooled_dim: int, iterations: int, passes: int = 1) -> None:
+        super().__init__()
+        self.q = nn.Linear(dim, dim)
+        self.k = nn.Linear(dim, dim)
+        self.passes = passes
+        self.params = nn.Sequential(nn.Linear(2 * pooled_dim, 64), nn.ReLU(), nn.Linear(64, 3 * passes))
+        self.register_buffer("param_scales", torch.tensor(self.PARAM_SCALES), persistent=False)
+        self.iterations = iterations
+
+    def forward(self, fx: Tensor, fy: Tensor, x: Tensor, y: Tensor, pooled: Tensor) -> Tensor:
+        B = x.shape[0]
+        params = nn.functional.softplus(self.params(pooled)).view(B, self.passes, 3) * self.param_scales
+        qx = nn.functional.normalize(self.q(fx), dim=-1)  # (B, N, D)
+        ky = nn.functional.normalize(self.k(fy), dim=-1)  # (B, M, D)
+        similarity = qx @ ky.transpose(1, 2)  # (B, N, M)
+        y_sq = (y * y).sum(-1).unsqueeze(1)  # (B, 1, M)
+        R = torch.eye(3, dtype=x.dtype, device=x.device).expand(B, 3, 3)
+        r = torch.zeros_like(x[:, 0])
+        for i in range(self.passes):
+            beta, gamma, alpha = (params[:, i, j].view(B, 1, 1) for j in range(3))
+            moved = x @ R.transpose(1, 2) + r.unsqueeze(1)  # (B, N, 3)
+            d2 = (moved * moved).sum(-1, keepdim=True) - 2.0 * moved @ y.transpose(1, 2) + y_sq  # (B, N, M)
+            P = sinkhorn_with_slack(beta * similarity - gamma * d2 - alpha, self.iterations)
+            R_i, r_i = weighted_procrustes(P, moved, y)
+            R, r = R_i @ R, (R_i @ r.unsqueeze(-1)).squeeze(-1) + r_i
+        return torch.cat([R.flatten(1), r], dim=-1)
+
+
+class AnalyticRewards(nn.Module):
+    """The rewards of every action from a residual pose, in closed form (``core.reward.true_rewards``).
+
+    ``R: (B, 3, 3)`` still to apply about the source centroid, ``t: (B, 3)`` still to add to it ->
+    ``(B, A)`` normalised per step-size scale. ``angle(R R_aᵀ) = arccos((Σ_ij R_ij (R_a)_ij - 1) / 2)``.
+    """
+
+    def __init__(self, table: ActionTable) -> None:
+        super().__init__()
+        scale_of = torch.as_tensor([a.scale for a in table.actions])
+        self.register_buffer("rotations", torch.as_tensor(table.rotations, dtype=torch.float32), persistent=False)
+        self.register_buffer("translations", torch.as_tensor(table.translations, dtype=torch.float32), persistent=False)
+        self.register_buffer("is_rotation", torch.as_tensor(table.is_rotation), persistent=False)
+        masks = (scale_of.unsqueeze(0) == torch.arange(len(table.scales)).unsqueeze(1)).float()  # (S, A)
+        self.register_buffer("scale_masks", masks, persistent=False)
+
+    @staticmethod
+    def _angle(trace: Tensor) -> Tensor:
+        # Clamped inside (-1, 1): arccos' derivative is infinite at the ends.
+        return torch.acos(((trace - 1.0) / 2.0).clamp(-1.0 + 1e-7, 1.0 - 1e-7))
+
+    def forward(self, R: Tensor, t: Tensor) -> Tensor:
+        rot_before = self._angle(R.diagonal(dim1=1, dim2=2).sum(-1))  # (B,)
+        rot_after = self._angle(torch.einsum("bij,aij->ba", R, self.rotations))  # (B, A)
+        trans_before = t.norm(dim=-1)  # (B,)
+        trans_after = (t.unsqueeze(1) - self.translations.unsqueeze(0)).norm(dim=-1)  # (B, A)
+        rewards = torch.where(
+            self.is_rotation.unsqueeze(0),
+            rot_before.unsqueeze(1) - rot_after,
+            trans_before.unsqueeze(1) - trans_after,
+        )
+        norms = ((rewards * rewards) @ self.scale_masks.T).sqrt() @ self.scale_masks  # (B, A): its scale's norm
+        return rewards / norms.clamp(min=1e-12)
+
+
 def mlp(dims: tuple[int, ...]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for a, b in zip(dims[:-1], dims[1:], strict=True):
@@ -172,13 +319,21 @@ class RewardNet(nn.Module):
         pooled = D * (2 if cfg.pool == "maxmean" else 1)
         self._pooled_dims = 2 * pooled  # source and target pooled vectors, first in the MLP input
         extra = 3 if cfg.center_inputs else 0
-        self.correspondence = SoftCorrespondence(D) if cfg.correspondence else None
+        self.correspondence: nn.Module | None = None
+        if cfg.correspondence:
+            self.correspondence = (
+                SinkhornCorrespondence(D, pooled, cfg.sinkhorn_iters, cfg.match_passes)
+                if cfg.matching == "sinkhorn"
+                else SoftCorrespondence(D)
+            )
         extra += 12 if cfg.correspondence else 0
-        self.shared = mlp((2 * pooled + extra, *cfg.mlp_shared))
-        width = cfg.mlp_shared[-1]
-        n_rot, n_trans = len(table.rotation_indices), len(table.translation_indices)
-        self.rotation_head = nn.Sequential(mlp((width, *cfg.mlp_head)), nn.Linear(cfg.mlp_head[-1], n_rot))
-        self.translation_head = nn.Sequential(mlp((width, *cfg.mlp_head)), nn.Linear(cfg.mlp_head[-1], n_trans))
+        self.analytic = AnalyticRewards(table) if cfg.reward_head == "analytic" else None
+        if self.analytic is None:  # the paper's MLP heads (an analytic network has no learned head)
+            self.shared = mlp((2 * pooled + extra, *cfg.mlp_shared))
+            width = cfg.mlp_shared[-1]
+            n_rot, n_trans = len(table.rotation_indices), len(table.translation_indices)
+            self.rotation_head = nn.Sequential(mlp((width, *cfg.mlp_head)), nn.Linear(cfg.mlp_head[-1], n_rot))
+            self.translation_head = nn.Sequential(mlp((width, *cfg.mlp_head)), nn.Linear(cfg.mlp_head[-1], n_trans))
         # Heads output [rotations..., translations...]; this permutation puts them in table order.
         order = torch.cat([torch.as_tensor(table.rotation_indices), torch.as_tensor(table.translation_indices)])
         self.register_buffer("table_order", torch.argsort(order), persistent=False)
@@ -219,14 +374,31 @@ class RewardNet(nn.Module):
                 raise ValueError("this network needs the points of both clouds (correspondence=True)")
             x = src_points - src_centroid.unsqueeze(1)
             y = tgt_points - tgt_centroid.unsqueeze(1)
-            parts.append(self.correspondence(src, tgt, x, y))
+            if isinstance(self.correspondence, SinkhornCorrespondence):
+                pose = self.correspondence(src, tgt, x, y, torch.cat(parts, dim=-1))
+                if self.analytic is not None:
+                    return pose  # the analytic head needs nothing else
+                parts.append(pose)
+            else:
+                parts.append(self.correspondence(src, tgt, x, y))
         return torch.cat(parts, dim=-1)
+
+    def residual_pose(self, pair: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
+        """Analytic head: ``pair: (B, 12)``, ``offset: (B, 3)`` -> ``(R_err (B, 3, 3), t_err (B, 3))``.
+
+        ``y ≈ R x + r`` in centred coordinates, so the source centroid must move by ``r - offset``
+        (offset = source − target centroid): the state of ``core.reward``.
+        """
+        return pair[:, :9].reshape(-1, 3, 3), pair[:, 9:12] - offset
 
     def head(self, pair: Tensor, offset: Tensor) -> Tensor:
         """``pair: (B, P)`` from ``pair_features``, ``offset: (B, 3)`` = source − target centroid -> ``(B, A)``.
 
         The offset is used only with ``center_inputs`` (it sits after the two pooled vectors, as in training).
+        With the analytic head, the rewards are computed in closed form from the residual pose.
         """
+        if self.analytic is not None:
+            return self.analytic(*self.residual_pose(pair, offset))
         if self.cfg.center_inputs:
             n = self._pooled_dims
             pair = torch.cat([pair[:, :n], offset, pair[:, n:]], dim=-1)
@@ -246,6 +418,17 @@ class RewardNet(nn.Module):
         """Embeddings of both clouds -> ``rewards: (B, A)`` in action-table order (``pair_features`` + ``head``)."""
         pair = self.pair_features(src, src_centroid, tgt, tgt_centroid, src_points, tgt_points)
         return self.head(pair, src_centroid - tgt_centroid)
+
+    def pose_and_rewards(
+        self, source: Tensor, source_knn: Tensor, target: Tensor, target_knn: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Analytic networks: ``(R_err (B, 3, 3), t_err (B, 3), source centroid (B, 3), rewards (B, A))``."""
+        src, src_c = self.embed(source, source_knn)
+        tgt, tgt_c = self.embed(target, target_knn)
+        pair = self.pair_features(src, src_c, tgt, tgt_c, source, target)
+        offset = src_c - tgt_c
+        R, t = self.residual_pose(pair, offset)
+        return R, t, src_c, self.head(pair, offset)
 
     def forward(self, source: Tensor, source_knn: Tensor, target: Tensor, target_knn: Tensor) -> Tensor:
         return self.score(*self.embed(source, source_knn), *self.embed(target, target_knn), source, target)

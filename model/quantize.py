@@ -35,7 +35,9 @@ OP_TYPES = ("MatMul", "Gemm")
 # The MLP heads stay fp32: their input concatenates pooled features with the small centroid offset and the
 # correspondence rotation, and one per-tensor activation scale for all of them cost the trained model up to 0.04
 # of reward drift (on rewards of order 0.18) for 0.4 of its 265 MFLOP per step. Node-name prefixes of the export.
-FP32_PREFIXES = ("/shared", "/rotation_head", "/translation_head")
+# The analytic reward layer (its constants are the action table) and the matching's sharpness network stay fp32
+# as well: quantizing them would perturb the rewards themselves, for no measurable time.
+FP32_PREFIXES = ("/shared", "/rotation_head", "/translation_head", "/analytic", "/correspondence/params")
 
 
 def _sha256(path: Path) -> str:

@@ -36,6 +36,8 @@ class OptimConfig:
     batch_size: int = 32
     epochs: int = 1300
     grad_clip: float = 0.0
+    reward_weight: float = 1.0  # the paper's reward MSE
+    pose_weight: float = 0.0  # analytic networks: the estimated residual pose against the true one
 
 
 @dataclass(frozen=True)
@@ -51,6 +53,7 @@ class TrainConfig:
     val_fraction: float = 0.1
     val_samples: int = 512
     threads: int = 0  # torch intra-op threads; 0 = torch's default
+    init: str = ""  # warm start: a checkpoint whose matching parameters are copied before epoch 0
     notes: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -99,6 +102,15 @@ PRESETS: dict[str, TrainConfig] = {
         threads=2,
     ),
 }
+# Model 2.0.0 (issue 12): the cpu preset's embedding, warm-started from its run, matched by Sinkhorn with
+# slack and scored by the analytic reward layer; trained on the pose error (docs/DESIGN.md, "The agent").
+PRESETS["agent"] = replace(
+    PRESETS["cpu"],
+    preset="agent",
+    net=replace(PRESETS["cpu"].net, matching="sinkhorn", reward_head="analytic"),
+    optim=replace(PRESETS["cpu"].optim, reward_weight=0.0, pose_weight=1.0, epochs=20),
+    init="runs/cpu/best.pt",
+)
 
 
 def parse_override(cfg: TrainConfig, item: str) -> TrainConfig:

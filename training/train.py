@@ -62,13 +62,44 @@ class StateDataset(Dataset):
         src, tgt, rewards = state.source, state.target, state.rewards
         n, k = self.cfg.net.n_points, self.cfg.net.k
         src, tgt = resample(src, n, rng).astype(np.float32), resample(tgt, n, rng).astype(np.float32)
+        # The residual pose about the resampled source's centroid c' (the network's): the source goes to
+        # R_err (p - c) + c + t_err with c the full source's centroid, so c' must move by t' below.
+        c = state.source.mean(axis=0)
+        c_resampled = src.mean(axis=0, dtype=np.float64)
+        t_resampled = state.R_err @ (c_resampled - c) + c + state.t_err - c_resampled
         return (
             torch.from_numpy(src),
             torch.from_numpy(knn_indices(src, k)),
             torch.from_numpy(tgt),
             torch.from_numpy(knn_indices(tgt, k)),
             torch.from_numpy(rewards.astype(np.float32)),
+            torch.from_numpy(state.R_err.astype(np.float32)),
+            torch.from_numpy(t_resampled.astype(np.float32)),
         )
+
+
+def pose_error(R_hat: torch.Tensor, t_hat: torch.Tensor, R: torch.Tensor, t: torch.Tensor, points: torch.Tensor):
+    """Mean distance of the source points ``(B, N, 3)`` placed by the estimate from their true places (RPMNet's
+    loss), both poses about the points' centroid -> ``(B,)``."""
+    centred = points - points.mean(dim=1, keepdim=True)
+    diff = centred @ (R_hat - R).transpose(1, 2) + (t_hat - t).unsqueeze(1)  # (B, N, 3)
+    return diff.norm(dim=-1).mean(dim=1)
+
+
+def batch_loss(
+    net: torch.nn.Module, batch: tuple[torch.Tensor, ...], cfg: TrainConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(loss (), per-sample reward MSE (B,))``: ``reward_weight`` × reward MSE (paper, "Loss function")
+    + ``pose_weight`` × the pose error of the analytic head's estimate (beyond the paper)."""
+    src, src_knn, tgt, tgt_knn, g, R, t = batch
+    core = net.module if hasattr(net, "module") else net
+    if cfg.optim.pose_weight and getattr(core, "analytic", None) is not None:
+        R_hat, t_hat, _, rewards = core.pose_and_rewards(src, src_knn, tgt, tgt_knn)
+        pose = pose_error(R_hat, t_hat, R, t, src).mean()
+    else:
+        rewards, pose = net(src, src_knn, tgt, tgt_knn), torch.zeros(())
+    mse = ((rewards - g) ** 2).mean(dim=1)
+    return cfg.optim.reward_weight * mse.mean() + cfg.optim.pose_weight * pose, mse.detach()
 
 
 def build_optimizer(
@@ -92,6 +123,17 @@ def build_optimizer(
     else:
         raise ValueError(f"unknown schedule {o.schedule!r}")
     return opt, sched
+
+
+def warm_start(net: torch.nn.Module, path: Path, rank: int) -> None:
+    """Copy every parameter of the checkpoint ``path`` whose name and shape match ``net``'s (the embedding of
+    an earlier run); the rest keep their fresh initialisation."""
+    state = torch.load(path, map_location="cpu", weights_only=False)["model"]
+    own = net.state_dict()
+    shared = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
+    net.load_state_dict(shared, strict=False)
+    if rank == 0:
+        print(f"warm start from {path}: {len(shared)} of {len(own)} tensors")
 
 
 def resolve_config(args: argparse.Namespace) -> TrainConfig:
@@ -167,14 +209,16 @@ def validation_set(shapes: np.ndarray, cfg: TrainConfig, table: ActionTable) -> 
     return [ds[i] for i in range(len(ds))]
 
 
-def evaluate_loss(net: torch.nn.Module, batches: list[tuple[torch.Tensor, ...]], batch_size: int) -> float:
+def evaluate_loss(net: torch.nn.Module, batches: list[tuple[torch.Tensor, ...]], cfg: TrainConfig) -> float:
+    """The training loss on the fixed validation states (sample-weighted mean over batches)."""
     net.eval()
     total, count = 0.0, 0
     with torch.no_grad():
-        for i in range(0, len(batches), batch_size):
-            s, sk, t, tk, g = (torch.stack(x) for x in zip(*batches[i : i + batch_size], strict=True))
-            total += float(((net(s, sk, t, tk) - g) ** 2).mean(dim=1).sum())
-            count += len(g)
+        for i in range(0, len(batches), cfg.optim.batch_size):
+            batch = tuple(torch.stack(x) for x in zip(*batches[i : i + cfg.optim.batch_size], strict=True))
+            loss, _ = batch_loss(net, batch, cfg)
+            total += float(loss) * len(batch[0])
+            count += len(batch[0])
     net.train()
     return total / max(count, 1)
 
@@ -203,6 +247,8 @@ def main(argv: list[str] | None = None) -> int:
         train_shapes, val_shapes = train_shapes[: args.limit], val_shapes[: args.limit]
 
     net = RewardNet(cfg.net, table)
+    if cfg.init and not args.resume:
+        warm_start(net, Path(cfg.init), rank)
     model: torch.nn.Module = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
     opt, sched = build_optimizer(net, cfg)
     start_epoch, best, wall = 0, float("inf"), 0.0
@@ -268,22 +314,23 @@ def main(argv: list[str] | None = None) -> int:
 
             it = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.optim.epochs}", leave=False, file=sys.stdout)
         running, n = 0.0, 0
-        for src, src_knn, tgt, tgt_knn, g in it:
-            loss = ((model(src, src_knn, tgt, tgt_knn) - g) ** 2).mean()
+        for batch in it:
+            loss, _ = batch_loss(model, batch, cfg)
+            size = len(batch[0])
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if cfg.optim.grad_clip:
                 torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.optim.grad_clip)
             opt.step()
-            running += float(loss.detach()) * len(g)
-            n += len(g)
+            running += float(loss.detach()) * size
+            n += size
             if rank == 0 and not args.no_progress and hasattr(it, "set_postfix"):
                 it.set_postfix(loss=f"{running / n:.4f}")
         lr = opt.param_groups[0]["lr"]
         sched.step()
         if rank != 0:
             continue
-        val_loss = evaluate_loss(net, val, cfg.optim.batch_size)
+        val_loss = evaluate_loss(net, val, cfg)
         epoch_s = time.time() - t0
         wall += epoch_s
         train_loss = running / max(n, 1)

@@ -39,19 +39,26 @@ def test_decomposed_edge_conv_equals_the_textbook_form():
 @pytest.mark.parametrize(
     "cfg", [NetConfig(n_points=64), NetConfig(n_points=64, pool="maxmean", blocks=2, self_attention=True)]
 )
-def test_reward_net_shapes_and_target_separability(cfg):
+def test_reward_net_shapes_and_point_order_invariance(cfg):
+    """Rewards are a function of two point *sets*: re-ordering either cloud (and its kNN graph) changes nothing."""
     torch.manual_seed(1)
     table = build_action_table()
     net = RewardNet(cfg, table).eval()
     src, tgt = torch.randn(2, 64, 3), torch.randn(2, 80, 3)
     sk = torch.from_numpy(knn_indices(src.numpy(), cfg.k))
     tk = torch.from_numpy(knn_indices(tgt.numpy(), cfg.k))
+    ps, pt = torch.randperm(64), torch.randperm(80)
     with torch.no_grad():
         out = net(src, sk, tgt, tk)
-        tf, tc = net.embed(tgt, tk)
-        again = net.score(*net.embed(src, sk), tf, tc)
+        shuffled = net(
+            src[:, ps],
+            torch.from_numpy(knn_indices(src[:, ps].numpy(), cfg.k)),
+            tgt[:, pt],
+            torch.from_numpy(knn_indices(tgt[:, pt].numpy(), cfg.k)),
+        )
     assert out.shape == (2, len(table))
-    torch.testing.assert_close(out, again)
+    torch.testing.assert_close(shuffled, out, atol=1e-5, rtol=1e-4)
+    assert not torch.allclose(out[0], out[1])  # and they do depend on the clouds
 
 
 def test_centered_embedding_is_translation_invariant_but_offset_reaches_the_heads():
@@ -100,3 +107,122 @@ def test_polar_rotation_matches_svd():
     C = torch.from_numpy(np.stack([np.diag(rng.uniform(0.02, 1.0, 3)) for _ in range(8)]))
     H = C @ R.transpose(1, 2)  # the cross-covariance of exact correspondences y = R x
     torch.testing.assert_close(polar_rotation(H, iterations=40).transpose(1, 2), R, atol=1e-6, rtol=1e-6)
+
+
+def kabsch(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least squares ``y ≈ R x + t`` by SVD with the reflection guard (Umeyama)."""
+    w = w / w.sum()
+    xm, ym = w @ x, w @ y
+    H = (x - xm).T @ ((y - ym) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, ym - R @ xm
+
+
+def test_horn_rotation_matches_svd_kabsch_and_is_never_a_reflection():
+    from scipy.spatial.transform import Rotation
+
+    from pranet.model.network import horn_rotation
+
+    rng = np.random.default_rng(3)
+    R = Rotation.random(16, random_state=5).as_matrix()
+    x = rng.normal(size=(16, 40, 3)) * [1.0, 0.6, 0.3]
+    y = np.einsum("bij,bnj->bni", R, x) + rng.normal(0.0, 0.3, x.shape)  # noisy: H is far from a rotation
+    y[:4] = -y[:4]  # mirrored targets: the unconstrained optimum is a reflection
+    xc, yc = x - x.mean(1, keepdims=True), y - y.mean(1, keepdims=True)
+    H = torch.from_numpy(np.einsum("bni,bnj->bij", xc, yc))
+    got = horn_rotation(H.float()).double().numpy()
+    for b in range(16):
+        expected, _ = kabsch(x[b], y[b], np.ones(40))
+        np.testing.assert_allclose(got[b], expected, atol=2e-5)
+        assert np.linalg.det(got[b]) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_analytic_rewards_equal_the_numpy_labels():
+    from scipy.spatial.transform import Rotation
+
+    from pranet.core.reward import true_rewards
+    from pranet.model.network import AnalyticRewards
+
+    table = build_action_table()
+    rng = np.random.default_rng(4)
+    axes = rng.normal(size=(32, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    R = Rotation.from_rotvec(axes * np.deg2rad(rng.uniform(0.3, 90.0, 32))[:, None]).as_matrix()
+    t = rng.normal(0.0, 0.2, (32, 3))
+    got = AnalyticRewards(table)(torch.from_numpy(R).float(), torch.from_numpy(t).float()).numpy()
+    np.testing.assert_allclose(got, true_rewards(R, t, table), atol=5e-4)
+
+
+def test_sinkhorn_with_slack_is_doubly_stochastic_and_drops_unmatched_points():
+    from pranet.model.network import sinkhorn_with_slack
+
+    torch.manual_seed(5)
+    logits = torch.randn(2, 7, 9) * 2.0
+    logits[:, 0] = -30.0  # source point 0 matches nothing: it belongs to the slack column
+    P = sinkhorn_with_slack(logits, 200)
+    rows = P.sum(-1)
+    cols = P.sum(-2)
+    assert (rows <= 1.0 + 1e-5).all() and (cols <= 1.0 + 1e-5).all()
+    assert rows[:, 0].max() < 1e-6
+    # Brute-force check of the fixed point: the padded matrix's rows and columns (but the slack ones) sum to 1.
+    padded = torch.nn.functional.pad(logits, (0, 1, 0, 1))
+    # Sinkhorn's fixed point is diag(a) exp(L) diag(b); P must have that form on the real block.
+    ratio = P / logits.exp()
+    a = ratio[:, :, :1]
+    b = ratio[:, :1, :] / a[:, :1, :]
+    torch.testing.assert_close(ratio[:, 1:], (a * b)[:, 1:], atol=1e-4, rtol=1e-3)
+    assert padded.shape == (2, 8, 10)
+
+
+def analytic_net(n: int = 96) -> RewardNet:
+    cfg = NetConfig(n_points=n, correspondence=True, matching="sinkhorn", reward_head="analytic", sinkhorn_iters=10)
+    return RewardNet(cfg, build_action_table()).eval()
+
+
+def test_analytic_net_recovers_a_small_pose_from_positions_alone():
+    """With the feature term off and a sharp position term (an ICP-like soft match), the module's weighted
+    Procrustes finds a 2° rotation and a translation of a clean copy: the residual pose is the truth."""
+    from scipy.spatial.transform import Rotation
+
+    net = analytic_net()
+    with torch.no_grad():
+        last = net.correspondence.params[-1]
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([-30.0, 200.0, 0.0]))  # β ≈ 0, γ = 4e4, α = 0
+    rng = np.random.default_rng(7)
+    src = rng.normal(size=(96, 3)) * [1.0, 0.6, 0.3]
+    R = Rotation.from_rotvec(np.deg2rad(2.0) * np.array([1.0, -2.0, 0.5]) / np.sqrt(5.25)).as_matrix()
+    tgt = (src - src.mean(0)) @ R.T + src.mean(0) + [0.05, -0.02, 0.03]
+    s, t = torch.from_numpy(src[None]).float(), torch.from_numpy(tgt[None]).float()
+    sk, tk = (torch.from_numpy(knn_indices(a.numpy(), 16)) for a in (s, t))
+    with torch.no_grad():
+        R_hat, t_hat, _, rewards = net.pose_and_rewards(s, sk, t, tk)
+    np.testing.assert_allclose(R_hat[0].numpy(), R, atol=1e-4)
+    np.testing.assert_allclose(t_hat[0].numpy(), [0.05, -0.02, 0.03], atol=1e-4)
+    from pranet.core.reward import true_rewards
+
+    np.testing.assert_allclose(rewards[0].numpy(), true_rewards(R, [0.05, -0.02, 0.03], build_action_table()), atol=2e-3)
+
+
+def test_analytic_head_rescores_a_translated_source_from_its_pair_features():
+    torch.manual_seed(8)
+    net = analytic_net(64)
+    src, tgt = torch.randn(1, 64, 3), torch.randn(1, 64, 3)
+    sk, tk = (torch.from_numpy(knn_indices(a.numpy(), 16)) for a in (src, tgt))
+    shift = torch.tensor([0.3, -0.2, 0.1])
+    with torch.no_grad():
+        sf, sc = net.embed(src, sk)
+        tf, tc = net.embed(tgt, tk)
+        pair = net.pair_features(sf, sc, tf, tc, src, tgt)
+        R, t, _, _ = net.pose_and_rewards(src, sk, tgt, tk)
+        R2, t2, _, moved = net.pose_and_rewards(src + shift, sk, tgt, tk)
+        torch.testing.assert_close(R2, R, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(t2, t - shift, atol=1e-5, rtol=1e-5)  # the centroid must now move less
+        torch.testing.assert_close(net.head(pair, sc + shift - tc), moved, atol=2e-4, rtol=1e-3)
+
+
+def test_analytic_head_needs_sinkhorn_matching():
+    with pytest.raises(ValueError, match="analytic"):
+        NetConfig(correspondence=True, reward_head="analytic")

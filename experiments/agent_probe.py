@@ -1,0 +1,93 @@
+"""Compare reward-network candidates on the validation shapes (seen categories, held out from training).
+
+For each checkpoint (exported to a temporary ONNX directory) or model directory: PRANet-v1 (the agent
+alone, 60 steps) and PRANet-v2 (+ the service's ICP stages) on ``--pairs`` pairs per setting, through
+``core.pipeline.register`` as the service runs them. Backs docs/DESIGN.md, "The agent (model 2.0.0)".
+
+    python experiments/agent_probe.py runs/cpu/best.pt runs/probe-a/last.pt --pairs 40
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def load_scorer(path: Path, tmp: Path):
+    from pranet.model.runtime import RewardModel
+
+    if path.is_dir():
+        return RewardModel.load(path)
+    from pranet.model.export import card_from_checkpoint, export_model, load_checkpoint
+
+    net, ck = load_checkpoint(path)
+    out = tmp / path.parent.name
+    export_model(net, out, card_from_checkpoint(ck, "probe", "0.0.0"))
+    return RewardModel.load(out)
+
+
+def probe(scorer, shapes: np.ndarray, setting: str, pairs: int, icp) -> dict[str, float]:
+    from pranet.core.metrics import isotropic_errors
+    from pranet.core.pipeline import register
+    from pranet.training.samples import make_pair, pair_rng
+
+    v1, v2, ok, ms = [], [], [], []
+    for i in range(pairs):
+        rng = pair_rng(99, setting, i)
+        pair = make_pair(shapes[i % len(shapes)], setting, rng)
+        t0 = time.perf_counter()
+        reg = register(pair.source, pair.target, scorer, rng, icp=icp)
+        ms.append((time.perf_counter() - t0) * 1e3)
+        r1, _ = isotropic_errors(reg.agent_transform, pair.T_gt)
+        r2, t2 = isotropic_errors(reg.transform, pair.T_gt)
+        v1.append(r1)
+        v2.append(r2)
+        ok.append(r2 < 1.0 and t2 < 0.01)
+    return {
+        "v1_mean": float(np.mean(v1)),
+        "v1_median": float(np.median(v1)),
+        "v2_mean": float(np.mean(v2)),
+        "v2_success": float(np.mean(ok)),
+        "ms_median": float(np.median(ms)),
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("models", nargs="+", type=Path, help="checkpoints (.pt) or model directories")
+    p.add_argument("--pairs", type=int, default=40)
+    p.add_argument("--settings", default="clean,noisy,partial")
+    p.add_argument("--data-dir", default=None)
+    p.add_argument("--json", type=Path)
+    args = p.parse_args()
+
+    from pranet.service.icp import make_icp
+    from pranet.training.data import data_dir, load_modelnet40, split_train_val
+
+    data = load_modelnet40(data_dir(args.data_dir), "train")
+    shapes = data.points[split_train_val(data.labels, 1234, 0.1).val]
+    icp = make_icp()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for path in args.models:
+            scorer = load_scorer(path, Path(tmp))
+            for setting in args.settings.split(","):
+                row = {"model": str(path), "setting": setting, **probe(scorer, shapes, setting, args.pairs, icp)}
+                rows.append(row)
+                print(
+                    f"{str(path):40s} {setting:8s} v1 mean {row['v1_mean']:6.2f}° median {row['v1_median']:6.2f}°"
+                    f"  v2 mean {row['v2_mean']:6.2f}° success {100 * row['v2_success']:5.1f} %"
+                    f"  {row['ms_median']:6.0f} ms",
+                    flush=True,
+                )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()
