@@ -37,3 +37,13 @@ def b64(points: Any) -> dict[str, str]:
 def rotation_error_deg(R: Any, R_gt: Any) -> float:
     cos = (np.trace(np.asarray(R_gt).T @ np.asarray(R)) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def bumpy_shape(n: int = 512, seed: int = 0) -> np.ndarray:
+    """``(n, 3)`` points of an ellipsoid with bumps: no rotational symmetry, so every rotation of it is
+    recoverable, and about unit size (the scale the model was trained at)."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = 1 + 0.15 * np.sin(3 * u[:, 0]) * np.cos(2 * u[:, 1]) + 0.1 * np.sin(4 * u[:, 2])
+    return (u * r[:, None] * [0.8, 0.55, 0.35]).astype(np.float32).astype(np.float64)

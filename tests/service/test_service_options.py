@@ -1,0 +1,85 @@
+"""The request's options reach the registration, checked over real HTTP against the shipped model with
+independent truths: ground-truth poses, the start rotations of ``core.starts``, and what each option must
+change (or must not change) in the trajectory."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+from scipy.spatial.transform import Rotation
+from service_helpers import b64, bumpy_shape, rotation_error_deg
+
+from pranet.core.starts import start_rotations
+
+N_POINTS = 256  # the clouds below have exactly the model's N: resampling only permutes them
+
+
+def moved_pair(angle_deg: float, axis=(1.0, -2.0, 0.5), seed: int = 0):
+    source = bumpy_shape(N_POINTS, seed)
+    axis = np.asarray(axis) / np.linalg.norm(axis)
+    R = Rotation.from_rotvec(np.deg2rad(angle_deg) * axis).as_matrix()
+    t = np.array([0.1, -0.05, 0.08])
+    return source, source @ R.T + t, R
+
+
+def actions(out: dict) -> list[str]:
+    return [s["action"] for s in out["trajectory"]]
+
+
+def post(http: httpx.Client, **body) -> dict:
+    r = http.post("/register", json=body)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def test_model_has_the_points_these_tests_assume(http: httpx.Client) -> None:
+    assert http.get("/model").json()["n_points"] == N_POINTS
+
+
+def test_seed_and_policy_reach_the_agent(http: httpx.Client) -> None:
+    """stoch2 draws among the best actions with the request's seed: the same seed repeats the trajectory, another
+    seed changes it. The deterministic policy takes the argmax: the seed (which only permutes the points here)
+    cannot change it. A service that ignored ``seed`` or ``policy`` fails one of the three."""
+    source, target, _ = moved_pair(20.0)
+    common = {"source": b64(source), "target": b64(target), "steps": [10, 10], "icp": False, "rescue": False}
+    a = post(http, **common, policy="stoch2", seed=1)
+    again = post(http, **common, policy="stoch2", seed=1)
+    other = post(http, **common, policy="stoch2", seed=2)
+    assert actions(a) == actions(again) and a["transform"] == again["transform"]
+    assert actions(a) != actions(other)
+    det = [actions(post(http, **common, policy="deterministic", seed=s)) for s in (1, 2)]
+    assert det[0] == det[1] and len(det[0]) == 20
+
+
+def test_early_stop_ends_the_fine_phase_on_an_aligned_pair(http: httpx.Client) -> None:
+    """Source == target: every move makes it worse, so with ``early_stop`` the fine scale ends at once;
+    without it the agent takes all 40 steps."""
+    source = bumpy_shape(N_POINTS)
+    common = {"source": b64(source), "target": b64(source), "steps": [0, 40], "icp": False, "rescue": False}
+    assert len(post(http, **common, early_stop=False)["trajectory"]) == 40
+    stopped = post(http, **common, early_stop=True)
+    assert len(stopped["trajectory"]) < 5, actions(stopped)
+
+
+def test_global_mode_finds_a_150_degree_rotation_the_identity_start_misses(http: httpx.Client) -> None:
+    source, target, R = moved_pair(150.0)
+    common = {"source": b64(source), "target": b64(target)}
+    ident = post(http, **common, init="identity", rescue=False)
+    assert rotation_error_deg(ident["rotation"], R) > 20.0
+    out = post(http, **common, init="global", starts=24)
+    assert rotation_error_deg(out["rotation"], R) < 1.0, out["rotation"]
+    start = np.asarray(out["initial_transform"])[:3, :3]
+    assert any(np.allclose(start, Q, atol=1e-6) for Q in start_rotations(24)[1:])  # not the identity
+
+
+def test_starts_limits_the_start_rotations(http: httpx.Client) -> None:
+    """The truth is start 10 of 24: asked for 6 starts, the service may only begin from the first 6 (the
+    start sets are nested), so start 10 must not be reported; asked for 24, it is the start that wins."""
+    truth = start_rotations(24)[10]
+    source = bumpy_shape(N_POINTS)
+    target = source @ truth.T
+    common = {"source": b64(source), "target": b64(target), "init": "global", "steps": [0, 0], "icp": False}
+    six = np.asarray(post(http, **common, starts=6)["initial_transform"])[:3, :3]
+    assert any(np.allclose(six, Q, atol=1e-6) for Q in start_rotations(6))
+    all24 = np.asarray(post(http, **common, starts=24)["initial_transform"])[:3, :3]
+    np.testing.assert_allclose(all24, truth, atol=1e-6)
