@@ -113,3 +113,26 @@ def test_mcd_rewards_match_brute_force_nearest_neighbours():
     expected = np.array([mcd(P) - mcd(m) for m in moved])
     got = point_rewards(P, R_err, t_err, table, kind="mcd", normalize=False)
     np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_normalised_rewards_at_a_known_state_computed_by_hand():
+    """30° about z and t = (0.2, 0, 0): the raw rewards from scipy's rotation magnitudes and plain distances,
+    then each scale's block divided by its own L2 norm (grouped here by the names' step sizes)."""
+    table = build_action_table()
+    R = Rotation.from_euler("z", 30, degrees=True)
+    t = np.array([0.2, 0.0, 0.0])
+    raw = []
+    for name in table.names:
+        kind, size = name.split(":")
+        sign = 1.0 if "+" in kind else -1.0
+        axis = np.eye(3)["xyz".index(kind[-1])]
+        if kind.startswith("rot"):
+            step = Rotation.from_rotvec(axis * np.deg2rad(sign * float(size.removesuffix("deg"))))
+            raw.append(R.magnitude() - (R * step.inv()).magnitude())
+        else:
+            raw.append(np.linalg.norm(t) - np.linalg.norm(t - sign * float(size) * axis))
+    raw = np.array(raw)
+    coarse = np.array([n.endswith(("10deg", ":0.1")) for n in table.names])
+    expected = np.where(coarse, raw / np.linalg.norm(raw[coarse]), raw / np.linalg.norm(raw[~coarse]))
+    np.testing.assert_allclose(true_rewards(R.as_matrix(), t, table), expected, atol=1e-12)
+    np.testing.assert_allclose(true_rewards(R.as_matrix(), t, table, normalize=False), raw, atol=1e-12)

@@ -173,3 +173,31 @@ def test_batched_deadline_raises():
         run_agent_batch(
             src, src, lambda s, t: np.ones((len(s), len(TABLE))), TABLE, np.eye(4)[None], deadline=time.monotonic() - 1
         )
+
+
+def test_each_step_is_the_named_action_about_the_current_centroid():
+    """Every step, rebuilt independently with scipy: a rotation step turns the source by the action's angle
+    about its *current* centroid (which stays put), a translation step adds the action's offset; the source
+    sits far from the origin, so a rotation about the origin or a stale centroid would move the centroid."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    src, tgt, T = random_problem(rng)
+    src = src + [5.0, -3.0, 2.0]
+    tgt = apply_transform(T, src)
+    res = run_agent(src, tgt, oracle_score_fn(T, src, TABLE), TABLE)
+    prev = np.eye(4)
+    for step in res.steps:
+        kind, size = step.name.split(":")  # e.g. "rot-y", "0.5deg"
+        number = float(size.removesuffix("deg"))
+        sign = 1.0 if "+" in kind else -1.0
+        axis = "xyz".index(kind[-1])
+        moved = apply_transform(prev, src)
+        c = moved.mean(axis=0)
+        if kind.startswith("rot"):
+            R = Rotation.from_rotvec(np.eye(3)[axis] * np.deg2rad(sign * number)).as_matrix()
+            expected = (moved - c) @ R.T + c
+        else:
+            expected = moved + np.eye(3)[axis] * sign * number
+        np.testing.assert_allclose(apply_transform(step.transform, src), expected, atol=1e-9)
+        prev = step.transform
