@@ -4,6 +4,9 @@ The baselines and the PRANet rows can come from separate runs (the pairs are see
 index, so every run sees the same pairs); this refuses to merge runs whose pairs differ.
 
     python scripts/results_tables.py --markdown results/eval-noisy.json.gz   (or a baselines run and a PRANet run)
+
+``--card DIR`` also records the model's own figures (rotation error mean and median, success, per method and
+setting) in ``DIR/card.json`` under ``evaluation``: the bounds of the model-quality test come from there.
 """
 
 from __future__ import annotations
@@ -52,7 +55,9 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("files", nargs="+", type=Path)
     p.add_argument("--markdown", action="store_true", help="print the RESULTS.md markdown tables")
+    p.add_argument("--card", type=Path, help="model directory whose card.json gets the 'evaluation' figures")
     args = p.parse_args()
+    evaluation: dict[str, dict] = {}
     by_setting: dict[str, list[dict]] = defaultdict(list)
     for f in args.files:
         doc = json.loads(gzip.decompress(f.read_bytes()) if f.suffix == ".gz" else f.read_text())
@@ -72,6 +77,21 @@ def main() -> None:
         seed, n, angle, rotation = keys.pop()
         print(f"\n{setting}: {n} pairs, seed {seed}, {rotation} rotation <= {angle}°, translation <= 0.5")
         print(markdown_table(summary, paper) if args.markdown else format_table(summary, paper))
+        for m in ("pranet-v1", "pranet-v2", "pranet-adaptive", "icp"):
+            if m in summary:
+                s = summary[m]
+                evaluation.setdefault(m, {})[setting] = {
+                    "rotation_deg": s["rotation_deg"],
+                    "rotation_deg_median": s["rotation_deg_median"],
+                    "success_rate": s["success_rate"],
+                    "pairs": n,
+                    "seed": seed,
+                }
+    if args.card:
+        card_path = args.card / "card.json"
+        card = json.loads(card_path.read_text())
+        card["evaluation"] = evaluation  # not part of the graphs' digests: card.json only
+        card_path.write_text(json.dumps(card, indent=2) + "\n")
 
 
 if __name__ == "__main__":

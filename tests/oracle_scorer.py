@@ -13,11 +13,13 @@ pipeline's resampling is a permutation, and the rows are matched by their distan
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from pranet.core.actions import DEFAULT_SCHEDULE, ActionTable, build_action_table
+from pranet.core.metrics import isotropic_errors
 from pranet.core.preprocess import fit_normalization
 from pranet.core.reward import true_rewards
-from pranet.core.se3 import rotation_angle
+from pranet.core.se3 import make_transform, rotation_angle
 
 
 class RangeLimitedOracle:
@@ -68,3 +70,40 @@ class BatchedRangeLimitedOracle(RangeLimitedOracle):
             return np.stack([self.rewards(s) for s in sources])
 
         return score
+
+
+# Problems and an ICP stand-in for the pipeline and service tests.
+
+
+def asymmetric_cloud(rng: np.random.Generator, n: int = 300) -> np.ndarray:
+    """Points on an ellipsoid with a smaller one stuck to its side: no rotational symmetry."""
+    u = rng.standard_normal((n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    big = n * 3 // 4
+    return np.concatenate([u[:big] * [0.9, 0.5, 0.3], u[big:] * [0.2, 0.2, 0.3] + [0.4, 0.5, 0.1]])
+
+
+def rotated_problem(angle_deg: float, axis=(1.0, 2.0, -1.0), scale: float = 1.0):
+    src = asymmetric_cloud(np.random.default_rng(0)) * scale
+    axis = np.asarray(axis) / np.linalg.norm(axis)
+    T = make_transform(
+        Rotation.from_rotvec(np.deg2rad(angle_deg) * axis).as_matrix(), np.array([0.3, -0.2, 0.1]) * scale
+    )
+    return src, src @ T[:3, :3].T + T[:3, 3], T
+
+
+def snapping_icp(T_unit_truth: np.ndarray, reach_deg: float):
+    """An ICP stand-in: lands exactly on the truth from within ``reach_deg``, else returns its start."""
+    from pranet.core.pipeline import IcpResult
+
+    def icp(source, target, init):
+        close = isotropic_errors(init, T_unit_truth)[0] < reach_deg
+        return IcpResult((T_unit_truth if close else init).copy(), 1.0 if close else 0.0, 0.0)
+
+    return icp
+
+
+def unit_truth(src, tgt, T):
+    from pranet.core.preprocess import fit_normalization
+
+    return fit_normalization(src, tgt).transform_to_unit(T)

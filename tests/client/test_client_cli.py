@@ -192,8 +192,8 @@ def test_the_plot_draws_the_aligned_source_the_curves_and_the_confidence(clouds)
     start and the result, and the title carries the confidence and status."""
     from matplotlib.colors import to_rgba
 
-    from pranet.client.client import RegistrationResult
     from pranet.client.cli import registration_figure
+    from pranet.client.client import RegistrationResult
     from pranet.client.io import read_point_cloud
 
     start = make_transform(90.0, (0.0, 0.0, 1.0), (0.0, 0.0, 0.0))

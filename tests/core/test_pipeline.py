@@ -2,30 +2,18 @@
 
 import numpy as np
 import pytest
-from oracle_scorer import BatchedRangeLimitedOracle, RangeLimitedOracle
+from oracle_scorer import (
+    BatchedRangeLimitedOracle,
+    RangeLimitedOracle,
+    rotated_problem,
+    snapping_icp,
+    unit_truth,
+)
 from scipy.spatial.transform import Rotation
 
 from pranet.core.metrics import isotropic_errors
 from pranet.core.pipeline import register
-from pranet.core.se3 import make_transform
 from pranet.core.starts import geodesic_distances, start_rotations
-
-
-def asymmetric_cloud(rng: np.random.Generator, n: int = 300) -> np.ndarray:
-    """Points on an ellipsoid with a smaller one stuck to its side: no rotational symmetry."""
-    u = rng.standard_normal((n, 3))
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    big = n * 3 // 4
-    return np.concatenate([u[:big] * [0.9, 0.5, 0.3], u[big:] * [0.2, 0.2, 0.3] + [0.4, 0.5, 0.1]])
-
-
-def rotated_problem(angle_deg: float, axis=(1.0, 2.0, -1.0), scale: float = 1.0):
-    src = asymmetric_cloud(np.random.default_rng(0)) * scale
-    axis = np.asarray(axis) / np.linalg.norm(axis)
-    T = make_transform(
-        Rotation.from_rotvec(np.deg2rad(angle_deg) * axis).as_matrix(), np.array([0.3, -0.2, 0.1]) * scale
-    )
-    return src, src @ T[:3, :3].T + T[:3, 3], T
 
 
 def test_identity_mode_carries_a_confidence():
@@ -87,23 +75,6 @@ def test_split_schedule_cuts_at_cumulative_steps():
     for checks in [(5,), (20,), (7, 33, 59), (1, 2, 3)]:
         segments = split_schedule((20, 40), checks)
         assert tuple(np.sum(segments, axis=0)) == (20, 40)
-
-
-def snapping_icp(T_unit_truth: np.ndarray, reach_deg: float):
-    """An ICP stand-in: lands exactly on the truth from within ``reach_deg``, else returns its start."""
-    from pranet.core.pipeline import IcpResult
-
-    def icp(source, target, init):
-        close = isotropic_errors(init, T_unit_truth)[0] < reach_deg
-        return IcpResult((T_unit_truth if close else init).copy(), 1.0 if close else 0.0, 0.0)
-
-    return icp
-
-
-def unit_truth(src, tgt, T):
-    from pranet.core.preprocess import fit_normalization
-
-    return fit_normalization(src, tgt).transform_to_unit(T)
 
 
 def test_exit_checks_without_an_exit_take_the_same_steps_as_one_run():

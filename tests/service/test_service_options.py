@@ -83,3 +83,33 @@ def test_starts_limits_the_start_rotations(http: httpx.Client) -> None:
     assert any(np.allclose(six, Q, atol=1e-6) for Q in start_rotations(6))
     all24 = np.asarray(post(http, **common, starts=24)["initial_transform"])[:3, :3]
     np.testing.assert_allclose(all24, truth, atol=1e-6)
+
+
+def test_the_restarts_rescue_runs_for_a_default_request() -> None:
+    """The service's request-to-registration path (``run_registration``, in-process) with a stand-in model that
+    knows rotations within 35° and an ICP that snaps to the truth from within 5°: 50° about x is beyond both, the
+    wide ICP stays put, and only the restarts around the estimate (30° off) reach it. A default request (rescue on)
+    must come back rescued by them; ``rescue: false`` must not."""
+    import json
+    import time
+
+    from oracle_scorer import BatchedRangeLimitedOracle, rotated_problem, snapping_icp, unit_truth
+
+    from pranet.service.registration import run_registration
+
+    src, tgt, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
+    icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
+    stays = snapping_icp(unit_truth(src, tgt, T), 0.0)  # the wide rescue ICP: returns its start
+
+    def run(**options) -> dict:
+        body = json.dumps({"source": src.tolist(), "target": tgt.tolist(), "early_stop": True, **options}).encode()
+        oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
+        info = {"name": "oracle", "version": "0", "sha256": "0" * 64}
+        out = run_registration(body, oracle, info, icp, 10**6, time.monotonic() + 60, rescue_icp=stays)
+        return out.model_dump()
+
+    rescued = run()
+    assert rescued["rescued"] == "restarts" and rescued["status"] == "converged"
+    assert rotation_error_deg(rescued["rotation"], T[:3, :3]) < 1e-3
+    plain = run(rescue=False)
+    assert plain["rescued"] is None and plain["status"] == "suspect"
