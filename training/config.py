@@ -38,6 +38,7 @@ class OptimConfig:
     grad_clip: float = 0.0
     reward_weight: float = 1.0  # the paper's reward MSE
     pose_weight: float = 0.0  # analytic networks: the estimated residual pose against the true one
+    pose_loss: str = "absolute"  # "absolute" (RPMNet: mean point distance) | "relative" (÷ the state's own size)
 
 
 @dataclass(frozen=True)
@@ -107,8 +108,8 @@ PRESETS: dict[str, TrainConfig] = {
 PRESETS["agent"] = replace(
     PRESETS["cpu"],
     preset="agent",
-    net=replace(PRESETS["cpu"].net, matching="sinkhorn", reward_head="analytic"),
-    optim=replace(PRESETS["cpu"].optim, reward_weight=0.0, pose_weight=1.0, epochs=20),
+    net=replace(PRESETS["cpu"].net, matching="sinkhorn", reward_head="analytic", match_passes=3),
+    optim=replace(PRESETS["cpu"].optim, reward_weight=0.0, pose_weight=1.0, epochs=10),
     init="runs/cpu/best.pt",
 )
 

@@ -95,7 +95,13 @@ def batch_loss(
     core = net.module if hasattr(net, "module") else net
     if cfg.optim.pose_weight and getattr(core, "analytic", None) is not None:
         R_hat, t_hat, _, rewards = core.pose_and_rewards(src, src_knn, tgt, tgt_knn)
-        pose = pose_error(R_hat, t_hat, R, t, src).mean()
+        error = pose_error(R_hat, t_hat, R, t, src)  # (B,)
+        if cfg.optim.pose_loss == "relative":
+            # Each state's error relative to its own size (the identity's error, + 0.01 so that aligned states
+            # stay finite): a 2° state weighs as much as a 60° one, which the fine phase's precision needs.
+            eye = torch.eye(3).expand_as(R)
+            error = error / (pose_error(eye, torch.zeros_like(t), R, t, src).detach() + 0.01)
+        pose = error.mean()
     else:
         rewards, pose = net(src, src_knn, tgt, tgt_knn), torch.zeros(())
     mse = ((rewards - g) ** 2).mean(dim=1)

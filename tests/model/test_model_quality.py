@@ -43,7 +43,9 @@ def quality_failures(model: RewardModel, shapes: np.ndarray) -> list[str]:
     if not v1["rotation_deg"] < icp["rotation_deg"]:
         failures.append(f"agent mean {v1['rotation_deg']:.2f}° not below ICP's {icp['rotation_deg']:.2f}°")
     if not v1["rotation_deg_median"] <= card_bound(model.card):
-        failures.append(f"agent median {v1['rotation_deg_median']:.2f}° above the card's bound {card_bound(model.card):.2f}°")
+        failures.append(
+            f"agent median {v1['rotation_deg_median']:.2f}° above the card's bound {card_bound(model.card):.2f}°"
+        )
     return failures
 
 

@@ -203,7 +203,9 @@ def test_analytic_net_recovers_a_small_pose_from_positions_alone():
     np.testing.assert_allclose(t_hat[0].numpy(), [0.05, -0.02, 0.03], atol=1e-4)
     from pranet.core.reward import true_rewards
 
-    np.testing.assert_allclose(rewards[0].numpy(), true_rewards(R, [0.05, -0.02, 0.03], build_action_table()), atol=2e-3)
+    np.testing.assert_allclose(
+        rewards[0].numpy(), true_rewards(R, [0.05, -0.02, 0.03], build_action_table()), atol=2e-3
+    )
 
 
 def test_analytic_head_rescores_a_translated_source_from_its_pair_features():

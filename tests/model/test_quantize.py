@@ -69,7 +69,10 @@ def test_int8_graphs_are_listed_with_their_sha256(int8_dir):
         g: [n.op_type for n in onnx.load(str(int8_dir / g)).graph.node] for g in ("score.int8.onnx", "head.int8.onnx")
     }
     assert quantizable("score.onnx") > 0
-    assert ops["score.int8.onnx"].count("MatMulInteger") == quantizable("score.onnx") and "MatMulInteger" not in ops["head.int8.onnx"]
+    assert (
+        ops["score.int8.onnx"].count("MatMulInteger") == quantizable("score.onnx")
+        and "MatMulInteger" not in ops["head.int8.onnx"]
+    )
 
 
 def test_int8_rewards_are_close_to_fp32(int8_dir):

@@ -122,7 +122,11 @@ def test_breakdown_flops_ort_int8_early_stop_and_throughput_are_reported(bench_r
     (tp,) = doc["throughput"]
     assert tp["workers"] == 1 and tp["errors"] == 0
     # Requests answered per second agree with the count and the wall time the run measured.
-    assert tp["completed"] >= 1 and tp["per_s"] > 0 and tp["per_s"] == pytest.approx(tp["completed"] / tp["seconds"], rel=1e-6), tp
+    assert (
+        tp["completed"] >= 1
+        and tp["per_s"] > 0
+        and tp["per_s"] == pytest.approx(tp["completed"] / tp["seconds"], rel=1e-6)
+    ), tp
 
 
 def test_flop_count_of_a_known_matmul():
