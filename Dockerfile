@@ -9,6 +9,7 @@ FROM python:3.11-slim AS build
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY core/ core/
+COPY engine/ engine/
 COPY model/ model/
 COPY training/ training/
 COPY service/ service/
@@ -39,7 +40,7 @@ COPY --from=build /dist/ /tmp/wheels/
 RUN pip install --no-cache-dir -c /tmp/service.lock "$(ls /tmp/wheels/pranet-*.whl)[service]" \
     && rm -rf /tmp/wheels /tmp/service.lock \
     && python -c "import importlib.util as u; assert u.find_spec('torch') is None, 'torch must not be in the image'" \
-    && python -c "from pranet.model.runtime import RewardModel; print('model', RewardModel.load(threads=1).info())"
+    && python -c "from pranet.engine.runtime import RewardModel; print('model', RewardModel.load(threads=1).info())"
 
 # A non-root user with a fixed numeric id (mounts and Kubernetes runAsUser can rely on it).
 RUN groupadd --gid 10001 pranet \

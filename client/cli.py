@@ -23,6 +23,7 @@ import numpy.typing as npt
 
 from pranet.client.client import DEFAULT_URL, PranetClient, PranetError, RegistrationResult
 from pranet.client.io import SUPPORTED_SUFFIXES, PointCloudIOError, read_point_cloud, write_point_cloud
+from pranet.core.se3 import apply_transform, rotation_angle
 
 URL_ENV = "PRANET_URL"
 API_KEY_ENV = "PRANET_API_KEY"
@@ -34,15 +35,8 @@ class CliError(Exception):
     """A user-facing error detected by the CLI itself (bad output path, ...)."""
 
 
-def apply_transform(T: npt.ArrayLike, points: npt.ArrayLike) -> npt.NDArray[np.float64]:
-    """``T: (4, 4)``, ``points: (N, 3)`` -> ``points @ R.T + t``."""
-    T = np.asarray(T, dtype=np.float64)
-    return np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
 def rotation_angle_deg(R: npt.ArrayLike) -> float:
-    cos = (np.trace(np.asarray(R, dtype=np.float64)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return float(np.degrees(rotation_angle(R)))
 
 
 def _common_options(parser: argparse.ArgumentParser) -> None:

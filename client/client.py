@@ -11,7 +11,6 @@ which is about 4x smaller and much faster to parse.
 
 from __future__ import annotations
 
-import base64
 import os
 import time
 from dataclasses import dataclass, field
@@ -22,12 +21,13 @@ import numpy as np
 import numpy.typing as npt
 
 from pranet.client.io import read_point_cloud
+from pranet.core import wire
 
 Array = npt.NDArray[np.float64]
 CloudLike = npt.ArrayLike | str | os.PathLike[str]
 
 DEFAULT_URL = "http://127.0.0.1:8000"
-COMPACT_ENCODING = "base64-float32-le"
+COMPACT_ENCODING = wire.ENCODING
 DEFAULT_COMPACT_THRESHOLD = 5000  # points; larger clouds are sent base64-encoded
 
 
@@ -70,6 +70,10 @@ class RegistrationResult:
     confidence: float | None = None  # in [0, 1]: fraction of the source the target explains (see the API docs)
     status: str | None = None  # "converged" | "suspect"
     initial_transform: Array | None = None  # (4, 4) the agent's start pose (the identity unless init="global")
+    n_source: int | None = None  # points the service received
+    n_target: int | None = None
+    exit_checks: list[dict[str, Any]] = field(default_factory=list)  # [{"step", "confidence"}]: ICP checks run
+    rescued: str | None = None  # "wide_icp" | "restarts": which rescue won, if any
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -100,6 +104,10 @@ class RegistrationResult:
             confidence=float(confidence) if confidence is not None else None,
             status=body.get("status"),
             initial_transform=initial,
+            n_source=body.get("n_source"),
+            n_target=body.get("n_target"),
+            exit_checks=list(body.get("exit_checks") or []),
+            rescued=body.get("rescued"),
             raw=body,
         )
 
@@ -121,10 +129,7 @@ def encode_cloud(points: npt.ArrayLike, compact_threshold: int = DEFAULT_COMPACT
     ``{"encoding": "base64-float32-le", "data": base64(float32 little-endian, row-major)}``.
     """
     p = np.asarray(points, dtype=np.float64)
-    if len(p) > compact_threshold:
-        data = np.ascontiguousarray(p, dtype="<f4").tobytes()
-        return {"encoding": COMPACT_ENCODING, "data": base64.b64encode(data).decode("ascii")}
-    return p.tolist()
+    return wire.encode_cloud(p) if len(p) > compact_threshold else p.tolist()
 
 
 def _error_message(response: httpx.Response) -> tuple[str, Any]:

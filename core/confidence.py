@@ -29,13 +29,10 @@ import numpy.typing as npt
 
 from pranet.core.se3 import Array, apply_transform
 
-# Best F1 of detecting > 5° failures of the shipped model's PRANet-v2 results (pranet-cpu 1.0.0) on a
-# calibration split: noisy and partial pairs of the last 150 unseen ModelNet40 test shapes (0.547). On the
-# disjoint evaluation split (the first 150 shapes) it flags with precision 89.1 % and recall 99.2 %:
-# `python scripts/confidence_eval.py --pairs 150 --calibration 150 --settings noisy,partial` (RESULTS.md).
-# Kept at 0.55 since: the same threshold decides when the service rescues, and a missed failure is not
-# rescued while a false alarm costs only time. With the point-to-plane ICP stages the best-F1 threshold is
-# 0.447 (evaluation precision 66.7 %, recall 90.2 %; at 0.55: 48.1 %, 98.0 %).
+# The status threshold, calibrated as the best F1 at detecting > 5° failures of PRANet-v2 on a split of the test
+# shapes disjoint from the one reported (`python scripts/confidence_eval.py`); the same threshold decides when the
+# service rescues, so it leans towards recall: a missed failure is not rescued, a false alarm only costs time.
+# The measurements behind the value: docs/DESIGN.md, "Confidence threshold".
 DEFAULT_THRESHOLD = 0.55
 INLIER_FACTOR = 1.0  # tau in target spacings
 MIN_TAU = 1e-3  # unit frame: a floor for clouds with duplicated points
@@ -43,7 +40,6 @@ MAX_SOURCE = 1024
 MAX_TARGET = 4096
 SPACING_SAMPLES = 512  # target points whose nearest neighbour sets the spacing
 CHUNK = 256  # rows per brute-force block: (256, 4096) float64 distances = 8 MB
-STATUSES = ("converged", "suspect")
 
 
 @dataclass(frozen=True)

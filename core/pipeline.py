@@ -1,19 +1,19 @@
-"""The registration pipeline, runtime-agnostic: clouds in -> preprocess -> agent -> world frame -> ICP.
+"""The registration pipeline, runtime-agnostic: clouds in -> prepare -> agent (with exit checks) -> rank ->
+refine -> rescue -> back to world units.
 
-``register`` is what the service runs per request and what ``pranet-eval`` measures as pranet-v1
-(``icp=None``) and pranet-v2. The reward model and the ICP refinement are injected.
+``register`` runs one registration as a ``RegistrationConfig`` (``core.registration_config``) says: the paper's
+PRANet-v1 (no ICP), PRANet-v2 (+ ICP), or the service's default (exit checks and rescues). The reward model and
+the ICP functions are injected (``pranet.engine`` builds them from the config), so this module stays numpy-only.
 
-``init="identity"`` (the paper's setting) runs the agent once from the input pose. ``init="global"``
-runs it from ``n_starts`` well-spread start rotations at once (``core.starts``; one batched score call
-per step), ranks the results by their confidence, refines the best ``refine_top`` with ICP and keeps
-the most confident: for initial rotations beyond the 60° the model was trained on. Every result
-carries a ``Confidence`` (``core.confidence``), computed in the unit frame.
+``init="identity"`` (the paper's setting) runs the agent once from the input pose. ``init="global"`` runs it
+from ``n_starts`` well-spread start rotations at once (``core.starts``; one batched score call per step), ranks
+the results by their confidence and refines the ``refine_top`` best: for initial rotations beyond the 60° the
+model was trained on. Every result carries a ``Confidence`` (``core.confidence``), computed in the unit frame.
 
-Beyond the paper, with ICP (identity mode): ``exit_checks`` refines the agent's estimate with ICP
-after those many steps and returns as soon as the refined result is confident (most pairs need only
-the coarse phase: ``docs/PERFORMANCE.md``). When the result stays unconfident, ``rescue_icp`` runs one
-wide-window ICP from the input pose and ``rescue_restarts`` reruns the coarse phase from six starts 30°
-around the best estimate (batched); the most confident result wins.
+Beyond the paper, with ICP (identity mode): exit checks refine the agent's estimate after some steps and return
+as soon as the refined result is confident (most pairs need only the coarse phase: ``docs/PERFORMANCE.md``).
+When the result stays unconfident, the rescues run: a wide-window ICP from the input pose, and the coarse phase
+again from six starts 30° around the best estimate (batched); the most confident result wins.
 """
 
 from __future__ import annotations
@@ -28,20 +28,17 @@ import numpy.typing as npt
 
 from pranet.core.actions import ActionTable
 from pranet.core.agent import AgentResult, BatchScoreFn, ScoreFn, batch_from_single, run_agent, run_agent_batch
-from pranet.core.confidence import DEFAULT_THRESHOLD, Confidence, ConfidenceEstimator
+from pranet.core.confidence import Confidence, ConfidenceEstimator
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
+from pranet.core.registration_config import PAPER_V1, RegistrationConfig
 from pranet.core.se3 import Array
-from pranet.core.starts import DEFAULT_STARTS, local_rotations, restart_transforms, start_rotations, start_transforms
+from pranet.core.starts import local_rotations, restart_transforms, start_rotations, start_transforms
 
-INITS = ("identity", "global")
-DEFAULT_REFINE_TOP = 3  # global mode: starts refined by ICP, best first by their agent-only confidence
-RANK_SOURCE, RANK_TARGET = 256, 1024
-# The service's exit checks: ICP + confidence after the coarse phase and halfway through the fine one.
-DEFAULT_EXIT_CHECKS = (20, 40)  # subsample sizes of the quick confidence that ranks the starts
+RANK_SOURCE, RANK_TARGET = 256, 1024  # subsample sizes of the quick confidence that ranks the starts
 
 
 class Scorer(Protocol):
-    """What the pipeline needs of a reward model (``pranet.model.runtime.RewardModel`` is one)."""
+    """What the pipeline needs of a reward model (``pranet.engine.runtime.RewardModel`` is one)."""
 
     table: ActionTable
     schedule: tuple[int, ...]
@@ -92,8 +89,8 @@ def split_schedule(schedule: Sequence[int], checks: Sequence[int]) -> list[tuple
 
 @dataclass
 class Registration:
-    transform: Array  # (4, 4) T_target_source in world units: target ≈ R @ source + t
-    agent_transform: Array  # (4, 4) before ICP, world units
+    T_target_source: Array  # (4, 4) the result in world units: target ≈ R @ source + t
+    agent_T_target_source: Array  # (4, 4) the agent's own estimate (before ICP), world units
     trajectory: list[tuple[int, str, Array]]  # (step, action name, T_target_source in world units)
     icp: IcpResult | None  # in world units (inlier_rmse scaled back)
     timing_ms: dict[str, float] = field(default_factory=dict)
@@ -101,7 +98,7 @@ class Registration:
     normalization: Normalization | None = None
     n_source: int = 0
     n_target: int = 0
-    confidence: Confidence | None = None  # of ``transform``, unit frame
+    confidence: Confidence | None = None  # of ``T_target_source``, unit frame
     init: str = "identity"
     initial_transform: Array = field(default_factory=lambda: np.eye(4))  # (4, 4) the agent's start, world units
     start_index: int = 0  # global mode: which start rotation won
@@ -110,166 +107,258 @@ class Registration:
     rescued: str | None = None  # which rescue won over the agent's result: "wide_icp" or "restarts"
 
 
+@dataclass(frozen=True)
+class Candidate:
+    """One estimate competing to be the result, in the unit frame."""
+
+    confidence: Confidence
+    agent_index: int  # which agent run (start) it came from
+    T_unit: Array  # (4, 4) T_target_source, unit frame
+    refined: IcpResult | None  # the ICP that produced it, if any
+    rescued: str | None = None
+
+
+def _better(best: Candidate | None, other: Candidate) -> Candidate:
+    return other if best is None or other.confidence.score > best.confidence.score else best
+
+
+@dataclass
+class _Prepared:
+    """The clouds of one registration: checked, in the unit frame, and resampled to the model's N."""
+
+    source: Array  # (Ns, 3) as given
+    target: Array  # (Nt, 3)
+    norm: Normalization
+    src_unit: Array  # (Ns, 3)
+    tgt_unit: Array  # (Nt, 3)
+    src_n: Array  # (N, 3)
+    tgt_n: Array  # (N, 3)
+
+
+@dataclass
+class _AgentRuns:
+    starts: Array  # (B, 4, 4) unit-frame start transforms
+    agents: list[AgentResult]
+    checked: list[Candidate]  # exit checks' refined estimates, in step order
+    checks: list[tuple[int, float]]
+    check_ms: list[float]  # [ICP, confidence] time spent in the exit checks
+
+
+def prepare(source: npt.ArrayLike, target: npt.ArrayLike, n_points: int, rng: np.random.Generator) -> _Prepared:
+    """Validate, normalise to the unit frame (one similarity for both clouds), resample to the model's N."""
+    src = check_cloud(source, "source")
+    tgt = check_cloud(target, "target")
+    norm = fit_normalization(src, tgt)
+    src_unit, tgt_unit = norm.to_unit(src), norm.to_unit(tgt)
+    return _Prepared(
+        src, tgt, norm, src_unit, tgt_unit, resample(src_unit, n_points, rng), resample(tgt_unit, n_points, rng)
+    )
+
+
+def run_agents(
+    p: _Prepared,
+    scorer: Scorer,
+    score_fn: ScoreFn | BatchScoreFn,
+    config: RegistrationConfig,
+    schedule: Sequence[int],
+    loop: dict,
+    estimator: ConfidenceEstimator,
+    icp: IcpFn | None,
+) -> _AgentRuns:
+    """The greedy action loop (20 coarse + 40 fine steps by default): from the input pose, with exit checks
+    when ICP is on and the config has them, or from every global start at once."""
+    if config.init == "global":
+        starts = start_transforms(start_rotations(config.n_starts), p.src_n.mean(axis=0), p.tgt_unit.mean(axis=0))
+        agents = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, starts, schedule, **loop)
+        return _AgentRuns(starts, agents, [], [], [0.0, 0.0])
+    starts = np.eye(4)[None]  # (1, 4, 4)
+    if icp is None or not config.exit_checks:
+        return _AgentRuns(
+            starts, [run_agent(p.src_n, p.tgt_n, score_fn, scorer.table, schedule, **loop)], [], [], [0.0, 0.0]
+        )
+    runs = _AgentRuns(starts, [AgentResult(transform=np.eye(4))], [], [], [0.0, 0.0])
+    agent = runs.agents[0]
+    segments = split_schedule(schedule, config.exit_checks)
+    for k, segment in enumerate(segments):
+        part = run_agent(p.src_n, p.tgt_n, score_fn, scorer.table, segment, initial_transform=agent.transform, **loop)
+        n = len(agent.steps)
+        agent.steps += [replace(s, step=s.step + n) for s in part.steps]
+        agent.stopped_early += [i + n for i in part.stopped_early]
+        agent.transform = part.transform
+        if k == len(segments) - 1:
+            break
+        # The exit check: refine now and stop if confident.
+        t_icp = time.perf_counter()
+        refined = icp(p.src_unit, p.tgt_unit, agent.transform)
+        t_conf = time.perf_counter()
+        confidence = estimator.evaluate(p.src_unit, refined.transform)
+        runs.check_ms[0] += (t_conf - t_icp) * 1e3
+        runs.check_ms[1] += (time.perf_counter() - t_conf) * 1e3
+        runs.checked.append(Candidate(confidence, 0, refined.transform, refined))
+        runs.checks.append((len(agent.steps), confidence.score))
+        if confidence.score >= config.threshold:
+            break
+    return runs
+
+
+def rank_starts(
+    p: _Prepared, agents: Sequence[AgentResult], config: RegistrationConfig, refining: bool
+) -> tuple[list[int], list[float]]:
+    """Global mode: the agents' results ranked by a quick confidence -> (the ones to refine, every start's score)."""
+    if config.init != "global":
+        return [0], []
+    ranker = ConfidenceEstimator(p.tgt_unit, max_target=RANK_TARGET, threshold=config.threshold)
+    scores = [ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
+    order = np.argsort(-np.asarray(scores), kind="stable")
+    return [int(b) for b in order[: config.refine_top if refining else 1]], scores
+
+
+def refine(
+    p: _Prepared,
+    runs: _AgentRuns,
+    candidates: Sequence[int],
+    estimator: ConfidenceEstimator,
+    icp: IcpFn | None,
+) -> tuple[Candidate, float]:
+    """ICP on the candidates (PRANet-v2); the most confident of them and of the exit checks wins.
+    Returns it and the ICP time (ms). When the last exit check stopped the loop, it is the final refinement."""
+    best: Candidate | None = None
+    for c in runs.checked:
+        best = _better(best, c)
+    icp_ms = 0.0
+    stopped_at_check = bool(runs.checks) and runs.checks[-1][0] == len(runs.agents[0].steps)
+    for b in [] if stopped_at_check else candidates:
+        t_icp = time.perf_counter()
+        refined = icp(p.src_unit, p.tgt_unit, runs.agents[b].transform) if icp is not None else None
+        icp_ms += (time.perf_counter() - t_icp) * 1e3
+        T_unit = refined.transform if refined is not None else runs.agents[b].transform
+        best = _better(best, Candidate(estimator.evaluate(p.src_unit, T_unit), b, T_unit, refined))
+    assert best is not None
+    return best, icp_ms
+
+
+def rescue(
+    p: _Prepared,
+    best: Candidate,
+    runs: _AgentRuns,
+    scorer: Scorer,
+    config: RegistrationConfig,
+    schedule: Sequence[int],
+    loop: dict,
+    estimator: ConfidenceEstimator,
+    icp: IcpFn,
+    rescue_icp: IcpFn | None,
+) -> Candidate:
+    """Rescues of an unconfident result (beyond the paper): a wide ICP from the input pose, then the coarse phase
+    from six starts 30° around the best estimate. Both run when suspect: a wide ICP may be confidently wrong.
+    The restarts' agent runs are appended to ``runs``."""
+    if rescue_icp is not None:
+        wide = icp(p.src_unit, p.tgt_unit, rescue_icp(p.src_unit, p.tgt_unit, np.eye(4)).transform)
+        wide_c = Candidate(
+            estimator.evaluate(p.src_unit, wide.transform), best.agent_index, wide.transform, wide, "wide_icp"
+        )
+        best = _better(best, wide_c)
+    if config.rescue_restarts:
+        restarts = restart_transforms(best.T_unit, p.src_n.mean(axis=0), local_rotations())
+        coarse = (schedule[0],) + (0,) * (len(schedule) - 1)
+        batch = batch_score_fn(scorer, p.tgt_n)
+        more = run_agent_batch(p.src_n, p.tgt_n, batch, scorer.table, restarts, coarse, **loop)
+        ranker = ConfidenceEstimator(p.tgt_unit, max_target=RANK_TARGET, threshold=config.threshold)
+        quick = [ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in more]
+        for k in np.argsort(-np.asarray(quick), kind="stable")[: config.refine_top]:
+            refined = icp(p.src_unit, p.tgt_unit, more[k].transform)
+            index = len(runs.agents) + int(k)
+            best = _better(
+                best,
+                Candidate(
+                    estimator.evaluate(p.src_unit, refined.transform), index, refined.transform, refined, "restarts"
+                ),
+            )
+        runs.agents.extend(more)
+        runs.starts = np.concatenate([runs.starts, restarts])
+    return best
+
+
 def register(
     source: npt.ArrayLike,
     target: npt.ArrayLike,
     scorer: Scorer,
     rng: np.random.Generator,
+    config: RegistrationConfig = PAPER_V1,
     icp: IcpFn | None = None,
-    policy: str = "deterministic",
-    early_stop: bool = False,
-    schedule: Sequence[int] | None = None,
-    deadline: float | None = None,
-    init: str = "identity",
-    n_starts: int = DEFAULT_STARTS,
-    refine_top: int = DEFAULT_REFINE_TOP,
-    confidence_threshold: float = DEFAULT_THRESHOLD,
-    exit_checks: Sequence[int] = (),
     rescue_icp: IcpFn | None = None,
-    rescue_restarts: bool = False,
+    deadline: float | None = None,
 ) -> Registration:
-    """Register ``source: (N, 3)`` onto ``target: (M, 3)`` (any units); returns ``T_target_source``.
+    """Register ``source: (N, 3)`` onto ``target: (M, 3)`` (any units) as ``config`` says; returns
+    ``T_target_source`` (target ≈ R @ source + t) and the agent's own estimate, both in world units.
 
-    ``init``: ``"identity"`` or ``"global"`` (``n_starts`` start rotations, the ``refine_top`` most
-    confident refined by ``icp``). Raises ``DegenerateCloudError`` (a ``ValueError``) for unusable
-    input and ``AgentTimeout`` past ``deadline`` (``time.monotonic()`` seconds).
-
-    ``exit_checks`` (identity mode with ``icp``): after each of these cumulative step counts, refine
-    with ``icp`` and stop once the confidence reaches ``confidence_threshold``; the most confident
-    refined estimate is returned. Rescues (with ``icp``), when the result is below the threshold:
-    ``rescue_icp`` refines the input pose by ``rescue_icp`` then ``icp``; ``rescue_restarts`` runs the
-    coarse phase from ``core.starts.local_rotations`` around the best estimate and refines the
-    ``refine_top`` most promising; the most confident result wins.
+    ``icp``: the refinement (``None`` = PRANet-v1, whatever ``config.icp_stages`` say: the engine builds it from
+    them); ``rescue_icp``: the wide ICP of the rescue (``None`` = off). Raises ``DegenerateCloudError`` (a
+    ``ValueError``) for unusable input and ``AgentTimeout`` past ``deadline`` (``time.monotonic()`` seconds).
     """
-    if init not in INITS:
-        raise ValueError(f"unknown init {init!r}; choose from {INITS}")
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    # 1. Validate, normalise to the unit frame (one similarity for both clouds), resample to the model's N.
-    src = check_cloud(source, "source")
-    tgt = check_cloud(target, "target")
-    norm = fit_normalization(src, tgt)
-    src_unit, tgt_unit = norm.to_unit(src), norm.to_unit(tgt)
-    src_n = resample(src_unit, scorer.n_points, rng)
-    tgt_n = resample(tgt_unit, scorer.n_points, rng)
-    schedule = schedule or scorer.schedule
+    # 1. Prepare: validate, unit frame, resample.
+    p = prepare(source, target, scorer.n_points, rng)
+    schedule = config.schedule or scorer.schedule
     t1 = time.perf_counter()
     timing["preprocess"] = (t1 - t0) * 1e3
     # 2. Embed the target once for this registration (tiled over the starts in global mode).
-    score_fn = scorer.score_fn(tgt_n) if init == "identity" else batch_score_fn(scorer, tgt_n)
+    score_fn = scorer.score_fn(p.tgt_n) if config.init == "identity" else batch_score_fn(scorer, p.tgt_n)
     t2 = time.perf_counter()
     timing["target_embedding"] = (t2 - t1) * 1e3
-    # 3. The greedy action loop (20 coarse + 40 fine steps by default), from one start or from each start.
-    loop: dict = {"policy": policy, "rng": rng, "early_stop": early_stop, "deadline": deadline}
-    estimator = ConfidenceEstimator(tgt_unit, threshold=confidence_threshold)
-    checked: list[tuple[Confidence, IcpResult]] = []  # exit checks' refined estimates, in step order
-    checks: list[tuple[int, float]] = []
-    check_ms = [0.0, 0.0]  # ICP, confidence
-    if init == "identity" and icp is not None and exit_checks:
-        starts = np.eye(4)[None]
-        agent = AgentResult(transform=np.eye(4))
-        segments = split_schedule(schedule, exit_checks)
-        for k, segment in enumerate(segments):
-            part = run_agent(src_n, tgt_n, score_fn, scorer.table, segment, initial_transform=agent.transform, **loop)
-            n = len(agent.steps)
-            agent.steps += [replace(s, step=s.step + n) for s in part.steps]
-            agent.stopped_early += [i + n for i in part.stopped_early]
-            agent.transform = part.transform
-            if k == len(segments) - 1:
-                break
-            t_icp = time.perf_counter()
-            refined = icp(src_unit, tgt_unit, agent.transform)
-            t_conf = time.perf_counter()
-            confidence = estimator.evaluate(src_unit, refined.transform)
-            check_ms[0] += (t_conf - t_icp) * 1e3
-            check_ms[1] += (time.perf_counter() - t_conf) * 1e3
-            checked.append((confidence, refined))
-            checks.append((len(agent.steps), confidence.score))
-            if confidence.score >= confidence_threshold:
-                break
-        agents = [agent]
-    elif init == "identity":
-        starts = np.eye(4)[None]  # (1, 4, 4)
-        agents = [run_agent(src_n, tgt_n, score_fn, scorer.table, schedule, **loop)]
-    else:
-        starts = start_transforms(start_rotations(n_starts), src_n.mean(axis=0), tgt_unit.mean(axis=0))  # (B, 4, 4)
-        agents = run_agent_batch(src_n, tgt_n, score_fn, scorer.table, starts, schedule, **loop)
+    # 3. The agent, with exit checks.
+    loop = {"policy": config.policy, "rng": rng, "early_stop": config.early_stop, "deadline": deadline}
+    estimator = ConfidenceEstimator(p.tgt_unit, threshold=config.threshold)
+    runs = run_agents(p, scorer, score_fn, config, schedule, loop, estimator, icp)
     t3 = time.perf_counter()
-    timing["agent_steps"] = (t3 - t2) * 1e3 - sum(check_ms)
-    # 4. Global mode: rank the starts by a quick confidence of the agent's result; keep the best few.
-    start_scores: list[float] = []
-    candidates = [0]
-    if init == "global":
-        ranker = ConfidenceEstimator(tgt_unit, max_target=RANK_TARGET, threshold=confidence_threshold)
-        start_scores = [ranker.evaluate(src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
-        order = np.argsort(-np.asarray(start_scores), kind="stable")
-        candidates = [int(b) for b in order[: max(1, refine_top) if icp is not None else 1]]
-    # 5. Optional ICP refinement on the full clouds (PRANet-v2); the most confident candidate wins.
-    #    With exit checks, the last check (if it stopped the loop) is the final refinement already.
-    best: tuple[Confidence, int, Array, IcpResult | None] | None = None
-    for confidence, refined in checked:
-        if best is None or confidence.score > best[0].score:
-            best = (confidence, 0, refined.transform, refined)
-    icp_ms = check_ms[0]
-    stopped_at_check = bool(checks) and checks[-1][0] == len(agents[0].steps)
-    for b in [] if stopped_at_check else candidates:
-        t_icp = time.perf_counter()
-        refined = icp(src_unit, tgt_unit, agents[b].transform) if icp is not None else None
-        icp_ms += (time.perf_counter() - t_icp) * 1e3
-        T_unit = refined.transform if refined is not None else agents[b].transform
-        confidence = estimator.evaluate(src_unit, T_unit)
-        if best is None or confidence.score > best[0].score:
-            best = (confidence, b, T_unit, refined)
-    assert best is not None
-    # 6. Rescues of an unconfident result (beyond the paper): a wide ICP from the input pose, then restarts.
+    timing["agent_steps"] = (t3 - t2) * 1e3 - sum(runs.check_ms)
+    # 4. Rank the global starts; 5. refine the best with ICP.
+    candidates, start_scores = rank_starts(p, runs.agents, config, refining=icp is not None)
+    best, icp_ms = refine(p, runs, candidates, estimator, icp)
+    icp_ms += runs.check_ms[0]
+    # 6. Rescue an unconfident result.
     t_rescue = time.perf_counter()
-    rescued: str | None = None
-    suspect = best[0].score < confidence_threshold  # both rescues run: a wide ICP may be confidently wrong
-    if icp is not None and rescue_icp is not None and suspect:
-        wide = icp(src_unit, tgt_unit, rescue_icp(src_unit, tgt_unit, np.eye(4)).transform)
-        confidence = estimator.evaluate(src_unit, wide.transform)
-        if confidence.score > best[0].score:
-            best, rescued = (confidence, best[1], wide.transform, wide), "wide_icp"
-    if icp is not None and rescue_restarts and suspect:
-        restarts = restart_transforms(best[2], src_n.mean(axis=0), local_rotations())
-        coarse = (schedule[0],) + (0,) * (len(schedule) - 1)
-        more = run_agent_batch(src_n, tgt_n, batch_score_fn(scorer, tgt_n), scorer.table, restarts, coarse, **loop)
-        ranker = ConfidenceEstimator(tgt_unit, max_target=RANK_TARGET, threshold=confidence_threshold)
-        quick = [ranker.evaluate(src_unit, a.transform, max_source=RANK_SOURCE).score for a in more]
-        for k in np.argsort(-np.asarray(quick), kind="stable")[: max(1, refine_top)]:
-            refined = icp(src_unit, tgt_unit, more[k].transform)
-            confidence = estimator.evaluate(src_unit, refined.transform)
-            if confidence.score > best[0].score:
-                best, rescued = (confidence, len(agents) + int(k), refined.transform, refined), "restarts"
-        agents = [*agents, *more]
-        starts = np.concatenate([starts, restarts])
-    rescue_ms = (time.perf_counter() - t_rescue) * 1e3
-    confidence, b, T_unit, refined = best
+    if icp is not None and best.confidence.score < config.threshold:
+        best = rescue(p, best, runs, scorer, config, schedule, loop, estimator, icp, rescue_icp)
     timing["icp"] = icp_ms
     # After the loop: everything but its ICP calls; plus the exit checks' confidence (their ICP is in icp_ms).
-    timing["confidence"] = (t_rescue - t3) * 1e3 - (icp_ms - check_ms[0]) + check_ms[1]  # ranking the starts included
-    timing["rescue"] = rescue_ms
-    # 6. Back to world units.
-    agent = agents[b]
-    result_T = norm.transform_to_world(T_unit)
-    icp_world = IcpResult(result_T, refined.fitness, refined.inlier_rmse / norm.scale) if refined else None
+    timing["confidence"] = (t_rescue - t3) * 1e3 - (icp_ms - runs.check_ms[0]) + runs.check_ms[1]
+    timing["rescue"] = (time.perf_counter() - t_rescue) * 1e3
+    # 7. Back to world units.
+    return _to_world(p, runs, best, start_scores, config, timing, t0)
+
+
+def _to_world(
+    p: _Prepared,
+    runs: _AgentRuns,
+    best: Candidate,
+    start_scores: list[float],
+    config: RegistrationConfig,
+    timing: dict[str, float],
+    t0: float,
+) -> Registration:
+    norm = p.norm
+    agent = runs.agents[best.agent_index]
+    T = norm.transform_to_world(best.T_unit)
+    refined = best.refined
+    icp_world = IcpResult(T, refined.fitness, refined.inlier_rmse / norm.scale) if refined else None
     timing["total"] = (time.perf_counter() - t0) * 1e3
-    trajectory = [(s.step, s.name, norm.transform_to_world(s.transform)) for s in agent.steps]
     return Registration(
-        transform=result_T,
-        agent_transform=norm.transform_to_world(agent.transform),
-        trajectory=trajectory,
+        T_target_source=T,
+        agent_T_target_source=norm.transform_to_world(agent.transform),
+        trajectory=[(s.step, s.name, norm.transform_to_world(s.transform)) for s in agent.steps],
         icp=icp_world,
         timing_ms=timing,
         agent=agent,
         normalization=norm,
-        n_source=len(src),
-        n_target=len(tgt),
-        confidence=confidence,
-        init=init,
-        initial_transform=norm.transform_to_world(starts[b]),
-        start_index=b,
+        n_source=len(p.source),
+        n_target=len(p.target),
+        confidence=best.confidence,
+        init=config.init,
+        initial_transform=norm.transform_to_world(runs.starts[best.agent_index]),
+        start_index=best.agent_index,
         start_scores=start_scores,
-        checks=checks,
-        rescued=rescued,
+        checks=runs.checks,
+        rescued=best.rescued,
     )

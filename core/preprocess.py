@@ -76,13 +76,3 @@ def resample(points: Array, n: int, rng: np.random.Generator) -> Array:
     if len(points) == n:
         return points[rng.permutation(n)]
     return points[rng.choice(len(points), n, replace=len(points) < n)]
-
-
-def prepare_pair(
-    source: npt.ArrayLike, target: npt.ArrayLike, n_points: int, rng: np.random.Generator
-) -> tuple[Array, Array, Normalization]:
-    """Validate, normalise and resample both clouds -> ``(source_unit (N, 3), target_unit (N, 3), norm)``."""
-    src = check_cloud(source, "source")
-    tgt = check_cloud(target, "target")
-    norm = fit_normalization(src, tgt)
-    return resample(norm.to_unit(src), n_points, rng), resample(norm.to_unit(tgt), n_points, rng), norm

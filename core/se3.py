@@ -58,10 +58,3 @@ def axis_rotation(axis_index: int, angle: float) -> Array:
     axis = np.zeros(3)
     axis[axis_index] = 1.0
     return axis_angle_to_matrix(axis, angle)
-
-
-def project_to_rotation(M: npt.ArrayLike) -> Array:
-    """Nearest rotation matrix to ``M: (3, 3)`` (SVD), to undo drift after many compositions."""
-    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt

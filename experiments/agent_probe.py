@@ -18,22 +18,22 @@ from pathlib import Path
 import numpy as np
 
 
-def load_scorer(path: Path, tmp: Path):
-    from pranet.model.runtime import RewardModel
+def load_engine(path: Path, tmp: Path):
+    from pranet.engine.engine import Engine
 
     if path.is_dir():
-        return RewardModel.load(path)
+        return Engine.load(path)
     from pranet.model.export import card_from_checkpoint, export_model, load_checkpoint
 
     net, ck = load_checkpoint(path)
     out = tmp / path.parent.name
     export_model(net, out, card_from_checkpoint(ck, "probe", "0.0.0"))
-    return RewardModel.load(out)
+    return Engine.load(out)
 
 
-def probe(scorer, shapes: np.ndarray, setting: str, pairs: int, icp) -> dict[str, float]:
+def probe(engine, shapes: np.ndarray, setting: str, pairs: int) -> dict[str, float]:
     from pranet.core.metrics import isotropic_errors
-    from pranet.core.pipeline import register
+    from pranet.core.registration_config import PAPER_V2
     from pranet.training.samples import make_pair, pair_rng
 
     v1, v2, ok, ms = [], [], [], []
@@ -41,10 +41,10 @@ def probe(scorer, shapes: np.ndarray, setting: str, pairs: int, icp) -> dict[str
         rng = pair_rng(99, setting, i)
         pair = make_pair(shapes[i % len(shapes)], setting, rng)
         t0 = time.perf_counter()
-        reg = register(pair.source, pair.target, scorer, rng, icp=icp)
+        reg = engine.register(pair.source, pair.target, PAPER_V2, rng)
         ms.append((time.perf_counter() - t0) * 1e3)
-        r1, _ = isotropic_errors(reg.agent_transform, pair.T_gt)
-        r2, t2 = isotropic_errors(reg.transform, pair.T_gt)
+        r1, _ = isotropic_errors(reg.agent_T_target_source, pair.T_gt)
+        r2, t2 = isotropic_errors(reg.T_target_source, pair.T_gt)
         v1.append(r1)
         v2.append(r2)
         ok.append(r2 < 1.0 and t2 < 0.01)
@@ -66,18 +66,16 @@ def main() -> None:
     p.add_argument("--json", type=Path)
     args = p.parse_args()
 
-    from pranet.service.icp import make_icp
     from pranet.training.data import data_dir, load_modelnet40, split_train_val
 
     data = load_modelnet40(data_dir(args.data_dir), "train")
     shapes = data.points[split_train_val(data.labels, 1234, 0.1).val]
-    icp = make_icp()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for path in args.models:
-            scorer = load_scorer(path, Path(tmp))
+            engine = load_engine(path, Path(tmp))
             for setting in args.settings.split(","):
-                row = {"model": str(path), "setting": setting, **probe(scorer, shapes, setting, args.pairs, icp)}
+                row = {"model": str(path), "setting": setting, **probe(engine, shapes, setting, args.pairs)}
                 rows.append(row)
                 print(
                     f"{str(path):40s} {setting:8s} v1 mean {row['v1_mean']:6.2f}° median {row['v1_median']:6.2f}°"

@@ -1,6 +1,6 @@
 """``pranet-export``: a training checkpoint -> the ONNX model directory the service loads.
 
-The directory holds two graphs, so that the target embedding stays separable and is computed once
+The directory holds three graphs, so that the target embedding stays separable and is computed once
 per registration:
 
 - ``embed.onnx``: ``points (B, N, 3) float32, knn (B, N, k) int64 -> features (B, N, D), centroid (B, 3)``
@@ -22,7 +22,6 @@ DIR`` adds them to the existing model directory ``DIR``.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 from pathlib import Path
 from typing import Any
@@ -30,15 +29,12 @@ from typing import Any
 import torch
 
 from pranet.core.actions import build_action_table
+from pranet.engine.runtime import graph_files, head_file, sha256_file
 from pranet.model.config import NetConfig
 from pranet.model.network import EmbedGraph, HeadGraph, RewardNet, ScoreGraph
 
 OPSET = 17
-FP32_GRAPHS = ("embed.onnx", "score.onnx", "head.onnx")
-
-
-def sha256_file(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+FP32_GRAPHS = (*graph_files("fp32"), head_file("fp32"))
 
 
 def load_checkpoint(path: Path) -> tuple[RewardNet, dict[str, Any]]:

@@ -1,4 +1,4 @@
-"""int8 variants of a model directory: dynamic quantization of both graphs with onnxruntime (no torch).
+"""int8 variants of a model directory: dynamic quantization of its graphs with onnxruntime (no torch).
 
 ``quantize_model_dir(dir)`` writes ``embed.int8.onnx``, ``score.int8.onnx`` (and ``head.int8.onnx``
 when the model has ``head.onnx``) beside the fp32 graphs
@@ -22,15 +22,16 @@ AVX2 machine fell to 0.005-0.011 (``tests/model/test_quantize.py`` measures it o
 
 from __future__ import annotations
 
-import hashlib
 import json
 import tempfile
 from pathlib import Path
 from typing import Any
 
-FP32_GRAPHS = ("embed.onnx", "score.onnx")
-INT8_GRAPHS = ("embed.int8.onnx", "score.int8.onnx")
-HEAD_GRAPHS = ("head.onnx", "head.int8.onnx")  # (fp32, int8), when the model has a head graph
+from pranet.engine.runtime import graph_files, head_file, sha256_file
+
+FP32_GRAPHS = graph_files("fp32")
+INT8_GRAPHS = graph_files("int8")
+HEAD_GRAPHS = (head_file("fp32"), head_file("int8"))  # (fp32, int8), when the model has a head graph
 OP_TYPES = ("MatMul", "Gemm")
 # The MLP heads stay fp32: their input concatenates pooled features with the small centroid offset and the
 # correspondence rotation, and one per-tensor activation scale for all of them cost the trained model up to 0.04
@@ -38,10 +39,6 @@ OP_TYPES = ("MatMul", "Gemm")
 # The analytic reward layer (its constants are the action table) and the matching's sharpness network stay fp32
 # as well: quantizing them would perturb the rewards themselves, for no measurable time.
 FP32_PREFIXES = ("/shared", "/rotation_head", "/translation_head", "/analytic", "/correspondence/params")
-
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def quantize_graph(src: Path, dst: Path, per_channel: bool = True, reduce_range: bool = True) -> None:
@@ -82,7 +79,7 @@ def quantize_model_dir(model_dir: str | Path, per_channel: bool = True, reduce_r
     """Write the int8 graphs into ``model_dir`` and list them in its card; returns the updated card."""
     import onnxruntime
 
-    from pranet.model.runtime import read_card
+    from pranet.engine.runtime import read_card
 
     model_dir = Path(model_dir)
     card_path = model_dir / "card.json"
@@ -93,7 +90,7 @@ def quantize_model_dir(model_dir: str | Path, per_channel: bool = True, reduce_r
     for fp32, int8 in pairs:
         quantize_graph(model_dir / fp32, model_dir / int8, per_channel=per_channel, reduce_range=reduce_range)
     files = {k: v for k, v in card.get("files", {}).items() if k not in INT8_GRAPHS + HEAD_GRAPHS[1:]}
-    files.update({int8: _sha256(model_dir / int8) for _, int8 in pairs})
+    files.update({int8: sha256_file(model_dir / int8) for _, int8 in pairs})
     card["files"] = files
     card["quantization"] = {
         "method": "onnxruntime.quantization.quantize_dynamic",

@@ -47,10 +47,10 @@ import sys
 
 repo = sys.argv[1]
 assert importlib.util.find_spec("torch") is None, "torch is installed in the service venv"
-import pranet.model.runtime
+import pranet.engine.runtime
 import pranet.service.app
 
-for module in (pranet.model.runtime, pranet.service.app):
+for module in (pranet.engine.runtime, pranet.service.app):
     assert not module.__file__.startswith(repo), f"{module.__name__} imported from the repository: {module.__file__}"
 print("[install-path] torch absent; pranet imported from", pranet.service.app.__file__)
 PY

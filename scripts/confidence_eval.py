@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
 
     from pranet.core.confidence import DEFAULT_THRESHOLD
-    from pranet.model.runtime import RewardModel
+    from pranet.engine.engine import Engine
     from pranet.training.data import data_dir, load_modelnet40, test_indices
     from pranet.training.evaluate import nan_to_none, pranet_runner
 
@@ -132,15 +132,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.pairs + args.calibration > len(idx):
         p.error(f"--pairs + --calibration must not exceed the {len(idx)} test shapes (the splits share none)")
     eval_idx, cal_idx = idx[: args.pairs], idx[len(idx) - args.calibration :]
-    model = RewardModel.load(args.model, threads=args.threads)
-    runner = pranet_runner(model, METHODS)
+    engine = Engine.load(args.model, threads=args.threads)
+    runner = pranet_runner(engine, METHODS)
     t0 = time.perf_counter()
     print(f"calibration: {len(cal_idx)} shapes x {settings}, seed {args.seed + 1}", file=sys.stderr)
     cal = collect(data.points[cal_idx], settings, args.seed + 1, runner, args.max_angle)
     print(f"evaluation: {len(eval_idx)} shapes x {settings}, seed {args.seed}", file=sys.stderr)
     ev = collect(data.points[eval_idx], settings, args.seed, runner, args.max_angle)
 
-    info = model.info()
+    info = engine.scorer.info()
     print(
         f"\nconfidence as a failure detector (failure: rotation error > {args.fail_deg:g}°; flag: status 'suspect' "
         f"= confidence < threshold)\nmodel {info['name']} {info['version']}, settings {settings}, rotations <= "

@@ -4,7 +4,7 @@ Pairs: the first ``--pairs`` unseen-category ModelNet40 test shapes, ``make_pair
 pair_rng(seed, setting, i), max_angle_deg=180)`` (isotropic rotations up to 180°, translations up to
 0.5), the same pairs for every method, all in one run (``training.evaluate.evaluate``). Methods:
 
-- ``pranet-global``: ``register(..., init="global", icp=...)``: the agent from ``--starts`` start
+- ``pranet-global``: ``Engine.register`` with ``PAPER_V2`` and ``init="global"``: the agent from ``--starts`` start
   rotations (one batched model call per step), the ``--refine-top`` most confident refined by ICP;
 - ``starts-icp``: the same without the agent (0 steps): ICP from the most confident starts, to show
   what the agent adds;
@@ -33,34 +33,22 @@ import numpy as np
 ALL = ("pranet-global", "starts-icp", "pranet-v2", "ransac", "fgr")
 
 
-def global_runner(scorer: Any, name: str, n_starts: int, refine_top: int, schedule: tuple[int, ...] | None) -> Any:
-    """A ``training.evaluate.Runner`` for ``register(..., init="global")`` with the service's ICP."""
-    from pranet.core.pipeline import register
-    from pranet.service.icp import make_icp
+def global_runner(engine: Any, name: str, n_starts: int, refine_top: int, schedule: tuple[int, ...] | None) -> Any:
+    """A ``training.evaluate.Runner`` for the service's ``"init": "global"`` (PRANet-v2 from ``n_starts`` starts)."""
+    from pranet.core.registration_config import PAPER_V2
     from pranet.training.evaluate import MethodOutput, Runner
 
-    icp = make_icp()
+    config = PAPER_V2.with_(init="global", n_starts=n_starts, refine_top=refine_top, schedule=schedule)
 
     def run(pair: Any, rng: np.random.Generator) -> dict[str, MethodOutput]:
-        reg = register(
-            pair.source,
-            pair.target,
-            scorer,
-            rng,
-            icp=icp,
-            init="global",
-            n_starts=n_starts,
-            refine_top=refine_top,
-            schedule=schedule,
-        )
-        assert reg.confidence is not None
+        reg = engine.register(pair.source, pair.target, config, rng)
         extra = {
             "timing_ms": reg.timing_ms,
             "confidence": reg.confidence.score,
             "status": reg.confidence.status,
             "start_index": reg.start_index,
         }
-        return {name: MethodOutput(reg.transform, reg.timing_ms["total"], extra=extra)}
+        return {name: MethodOutput(reg.T_target_source, reg.timing_ms["total"], extra=extra)}
 
     return Runner((name,), run)
 
@@ -113,15 +101,15 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--methods: unknown {unknown}; choose from {','.join(ALL)}")
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
 
-    from pranet.model.runtime import RewardModel
+    from pranet.engine.engine import Engine
     from pranet.training import baselines
     from pranet.training.data import data_dir, load_modelnet40, test_indices
     from pranet.training.evaluate import baseline_runner, evaluate, nan_to_none, pranet_runner
 
     data = load_modelnet40(data_dir(args.data_dir), "test")
     idx = test_indices(data.labels)[: args.pairs]
-    model = RewardModel.load(args.model, threads=args.threads)
-    n_scales = len(model.schedule)
+    model = Engine.load(args.model, threads=args.threads)
+    n_scales = len(model.scorer.schedule)
     runners = []
     if "pranet-global" in methods:
         runners.append(global_runner(model, "pranet-global", args.starts, args.refine_top, None))

@@ -9,7 +9,6 @@ count and the server's resident memory before and after (Linux /proc; workers in
 from __future__ import annotations
 
 import argparse
-import base64
 import os
 import shutil
 import signal
@@ -23,6 +22,8 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+
+from pranet.core.wire import encode_cloud
 
 MAX_DURATION_S = 120.0
 
@@ -89,7 +90,7 @@ def make_body(n_points: int, steps: list[int] | None, icp: bool, encoding: str, 
     def cloud(points: np.ndarray):
         if encoding == "list":
             return points.tolist()
-        return {"encoding": "base64-float32-le", "data": base64.b64encode(points.astype("<f4").tobytes()).decode()}
+        return encode_cloud(points)
 
     body: dict = {"source": cloud(source), "target": cloud(target), "icp": icp, "return_trajectory": False}
     if steps is not None:

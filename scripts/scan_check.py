@@ -20,9 +20,8 @@ from scipy.spatial.transform import Rotation
 
 from pranet.client.io import read_point_cloud
 from pranet.core.metrics import isotropic_errors
-from pranet.core.pipeline import DEFAULT_EXIT_CHECKS, register
-from pranet.model.runtime import RewardModel
-from pranet.service.icp import make_icp, make_rescue_icp
+from pranet.core.registration_config import PAPER_V2, SERVICE_DEFAULT
+from pranet.engine.engine import Engine
 from pranet.training.data import data_dir
 
 
@@ -52,12 +51,9 @@ def main() -> None:
     ap.add_argument("--model", default=None)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
-    model = RewardModel.load(args.model, threads=args.threads)
-    icp, rescue = make_icp(), make_rescue_icp()
-    modes = {
-        "v2 (60 steps + ICP)": {},
-        "service default": {"exit_checks": DEFAULT_EXIT_CHECKS, "rescue_icp": rescue, "rescue_restarts": True},
-    }
+    engine = Engine.load(args.model, threads=args.threads)
+    model = engine.scorer
+    modes = {"v2 (60 steps + ICP)": PAPER_V2, "service default": SERVICE_DEFAULT}
     print(f"model {model.info()['name']} {model.info()['version']} ({model.info()['sha256'][:12]})")
     print("| pair | points | mode | rot err (°) | trans err | agent rot err (°) | confidence | ms | where (ms) |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -66,13 +62,13 @@ def main() -> None:
         rot0, trans0 = isotropic_errors(np.eye(4), T_gt)
         sizes = f"{len(source)} / {len(target)}"
         print(f"| {name} | {sizes} | initial | {rot0:.2f} | {trans0 * unit:.1f} {unit_name} | | | | |")
-        for mode, kw in modes.items():
-            register(source, target, model, np.random.default_rng(0), icp=icp, **kw)  # warm (caches, pages)
+        for mode, config in modes.items():
+            engine.register(source, target, config, 0)  # warm (caches, pages)
             t0 = time.perf_counter()
-            reg = register(source, target, model, np.random.default_rng(0), icp=icp, **kw)
+            reg = engine.register(source, target, config, 0)
             ms = (time.perf_counter() - t0) * 1e3
-            rot, trans = isotropic_errors(reg.transform, T_gt)
-            agent_rot, _ = isotropic_errors(reg.agent_transform, T_gt)
+            rot, trans = isotropic_errors(reg.T_target_source, T_gt)
+            agent_rot, _ = isotropic_errors(reg.agent_T_target_source, T_gt)
             where = ", ".join(f"{k} {v:.0f}" for k, v in reg.timing_ms.items() if k != "total" and v >= 0.5)
             conf = f"{reg.confidence.score:.2f} ({reg.confidence.status})" if reg.confidence else ""
             rescued = f", rescued by {reg.rescued}" if reg.rescued else ""

@@ -97,11 +97,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        from pranet.service.icp import make_icp
-
         state = ServiceState(settings)
-        state.load()  # once per worker; a failure leaves /ready at 503 with the reason
-        make_icp()  # import Open3D now rather than in the first request
+        state.load()  # the engine, once per worker; a failure leaves /ready at 503 with the reason
         app.state.service = state
         yield
 

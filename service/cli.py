@@ -42,7 +42,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # (other workers, other processes): docs/PERFORMANCE.md. Read when libgomp loads, i.e. on the first ICP.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     args = parse_args(argv)
-    from pranet.model.runtime import ModelLoadError
+    from pranet.engine.runtime import ModelLoadError
     from pranet.service.settings import Settings
     from pranet.service.state import load_model
 

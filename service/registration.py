@@ -1,20 +1,24 @@
-"""One registration request, framework-free: body bytes -> clouds -> ``core.pipeline.register`` -> response.
+"""One registration request, framework-free: body bytes -> clouds and a ``RegistrationConfig`` -> the engine ->
+response.
 
-Runs in a worker thread (it is CPU-bound); raises ``RequestError`` for anything the client can fix.
+``request_config`` is the one place where a request's options become the registration's. Runs in a worker
+thread (it is CPU-bound); raises ``RequestError`` for anything the client can fix.
 """
 
 from __future__ import annotations
 
-import base64
-import binascii
 import time
 
 import numpy as np
 from pydantic import ValidationError
 
 from pranet.core.agent import AgentTimeout
-from pranet.core.pipeline import IcpFn, Registration, Scorer, register
+from pranet.core.pipeline import Registration
 from pranet.core.preprocess import DegenerateCloudError
+from pranet.core.registration_config import SERVICE_DEFAULT, RegistrationConfig
+from pranet.core.wire import WireError, max_points_of
+from pranet.core.wire import decode_cloud as decode_wire
+from pranet.engine.engine import Engine
 from pranet.service.schemas import (
     MAX_ABS_COORDINATE,
     EncodedCloud,
@@ -51,18 +55,12 @@ def parse_request(body: bytes) -> RegisterRequest:
 def decode_cloud(cloud: list[list[float]] | EncodedCloud, name: str, max_points: int) -> np.ndarray:
     """A request cloud -> ``(N, 3)`` float64; 413 past ``max_points``, 422 for undecodable data."""
     if isinstance(cloud, EncodedCloud):
-        n_bytes = len(cloud.data) // 4 * 3  # upper bound before decoding
-        if n_bytes // 12 > max_points + 1:
+        if max_points_of(cloud.data) > max_points + 1:
             raise RequestError(413, f"{name}: more than the server's limit of {max_points} points")
         try:
-            raw = base64.b64decode(cloud.data, validate=True)
-        except (binascii.Error, ValueError) as e:
-            raise RequestError(422, f"{name}.data: invalid base64 ({e})") from None
-        if len(raw) % 12:
-            raise RequestError(
-                422, f"{name}.data: {len(raw)} bytes is not a whole number of float32 (x, y, z) points (12 bytes each)"
-            )
-        points = np.frombuffer(raw, dtype="<f4").reshape(-1, 3).astype(np.float64)
+            points = decode_wire(cloud.data)
+        except WireError as e:
+            raise RequestError(422, f"{name}.data: {e}") from None
         # NaN/inf are reported by check_cloud (in register); finite but huge values are refused here.
         finite = points[np.isfinite(points)]
         if finite.size and np.abs(finite).max() > MAX_ABS_COORDINATE:
@@ -82,66 +80,71 @@ def _finite_or_none(x: float | None) -> float | None:
     return float(x) if x is not None and np.isfinite(x) else None
 
 
+def request_config(
+    req: RegisterRequest, n_scales: int, base: RegistrationConfig = SERVICE_DEFAULT
+) -> RegistrationConfig:
+    """The registration a request asks for: ``base`` (the service's default) with the request's options.
+
+    ``icp: false`` is the paper's PRANet-v1 (no ICP, so no exit checks or rescues); exit checks apply to the
+    identity start only; ``rescue: false`` turns both rescues off.
+    """
+    if req.steps is not None and len(req.steps) != n_scales:
+        raise RequestError(422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts")
+    refine = req.icp
+    return base.with_(
+        icp_stages=base.icp_stages if refine else (),
+        exit_checks=tuple(req.exit_checks) if refine and req.init == "identity" else (),
+        rescue_window=base.rescue_window if refine and req.rescue else None,
+        rescue_restarts=base.rescue_restarts and refine and req.rescue,
+        init=req.init,
+        n_starts=req.starts,
+        policy=req.policy,
+        early_stop=req.early_stop,
+        schedule=tuple(req.steps) if req.steps is not None else None,
+    )
+
+
 def run_registration(
     body: bytes,
-    scorer: Scorer,
+    engine: Engine,
     model_info: dict,
-    icp: IcpFn | None,
     max_points: int,
     deadline: float,
     admitted_at: float | None = None,
-    rescue_icp: IcpFn | None = None,
 ) -> RegisterResponse:
-    """Parse ``body`` (JSON bytes), register, and build the response.
+    """Parse ``body`` (JSON bytes), register with ``engine``, and build the response.
 
     ``deadline``: ``time.monotonic()`` seconds; ``admitted_at``: ``time.perf_counter()`` when the request
-    was admitted (its wait for a free slot is reported as ``timing_ms["queue"]``). ``rescue_icp``: the
-    wide-window ICP a request with ``rescue`` runs when the result stays unconfident.
+    was admitted (its wait for a free slot is reported as ``timing_ms["queue"]``).
     """
     t0 = time.perf_counter()
     queue_ms = (t0 - admitted_at) * 1e3 if admitted_at is not None else 0.0
-    # 1. Parse and decode both clouds.
+    # 1. Parse the request, decode both clouds, and map the options.
     req = parse_request(body)
     source = decode_cloud(req.source, "source", max_points)
     target = decode_cloud(req.target, "target", max_points)
-    schedule = None
-    if req.steps is not None:
-        n_scales = len(scorer.schedule)
-        if len(req.steps) != n_scales:
-            raise RequestError(
-                422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts"
-            )
-        schedule = tuple(req.steps)
+    config = request_config(req, len(engine.scorer.schedule))
     decode_ms = (time.perf_counter() - t0) * 1e3
     if time.monotonic() > deadline:
         raise RequestError(504, "registration exceeded the server's time limit before it started (queued too long)")
-    # 2. Register (agent, then optional ICP).
+    # 2. Register.
     try:
-        result: Registration = register(
-            source,
-            target,
-            scorer,
-            np.random.default_rng(req.seed),
-            icp=icp if req.icp else None,
-            policy=req.policy,
-            early_stop=req.early_stop,
-            schedule=schedule,
-            deadline=deadline,
-            init=req.init,
-            n_starts=req.starts,
-            exit_checks=req.exit_checks if req.icp and req.init == "identity" else (),
-            rescue_icp=rescue_icp if req.icp and req.rescue else None,
-            rescue_restarts=req.icp and req.rescue,
-        )
+        result: Registration = engine.register(source, target, config, np.random.default_rng(req.seed), deadline)
     except DegenerateCloudError as e:
         raise RequestError(422, str(e)) from None
     except AgentTimeout as e:
         raise RequestError(504, f"{e} (server limit; ask for fewer steps or a smaller cloud)") from None
     # 3. Build the response, in the input units.
-    T = result.transform
+    return build_response(result, req, model_info, {"queue": queue_ms, "decode": decode_ms}, t0)
+
+
+def build_response(
+    result: Registration, req: RegisterRequest, model_info: dict, timing: dict[str, float], t0: float
+) -> RegisterResponse:
+    T = result.T_target_source
     confidence = result.confidence
     assert confidence is not None  # register computes it for every result
-    timing = {"queue": queue_ms, "decode": decode_ms, **result.timing_ms}
+    timing = {**timing, **result.timing_ms}
     timing["total"] = (time.perf_counter() - t0) * 1e3
     return RegisterResponse(
         transform=_matrix(T),

@@ -10,12 +10,12 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
 
-from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
+from pranet.core.registration_config import SERVICE_DEFAULT
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
+from pranet.core.wire import ENCODING
 
 MAX_ABS_COORDINATE = 1e9  # input units; keeps every intermediate (centroids, SVD) far from overflow
 MAX_STEPS_PER_SCALE = 200
-ENCODING = "base64-float32-le"
 
 Coordinate = Annotated[
     float,
@@ -93,7 +93,7 @@ class RegisterRequest(_Strict):
         examples=[[20, 40]],
     )
     exit_checks: list[Annotated[int, Field(ge=1, le=8 * MAX_STEPS_PER_SCALE)]] = Field(
-        list(DEFAULT_EXIT_CHECKS),
+        list(SERVICE_DEFAULT.exit_checks),
         max_length=16,
         description="with icp: after these many agent steps (cumulative), refine with ICP and return at once if the "
         "result is 'converged' (most pairs need only the 20 coarse steps); [] = always run every step (the paper's "
@@ -152,7 +152,7 @@ class RegisterResponse(BaseModel):
     icp: IcpInfo
     timing_ms: dict[str, float] = Field(
         description="milliseconds per stage: queue (waiting for a slot), decode, preprocess, target_embedding, "
-        "agent_steps, icp, confidence; total (decode to response, queue excluded)"
+        "agent_steps, icp, confidence, rescue; total (decode to response, queue excluded)"
     )
     model: ModelInfo
     n_source: int = Field(description="points received in source")

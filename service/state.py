@@ -1,4 +1,4 @@
-"""What one worker process holds: the settings, the model (loaded once), the admission gate."""
+"""What one worker process holds: the settings, the engine (model and ICP, built once), the admission gate."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from pathlib import Path
 
 import anyio
 
-from pranet.model.runtime import ModelLoadError, RewardModel, default_model_dir
+from pranet.engine.engine import Engine
+from pranet.engine.runtime import ModelLoadError, RewardModel, default_model_dir
 from pranet.service.registration import RequestError
 from pranet.service.settings import Settings
 
@@ -58,20 +59,29 @@ class ServiceState:
 
     def __init__(self, settings: Settings):
         self.settings = settings
-        self.model: RewardModel | None = None
+        self.engine: Engine | None = None
         self.model_error: str | None = "model not loaded yet"
         self.admission = Admission(settings.max_concurrency, settings.max_queue)
 
+    @property
+    def model(self) -> RewardModel | None:
+        return self.engine.scorer if self.engine is not None else None  # type: ignore[return-value]
+
     def load(self) -> None:
+        """Load the model and build the engine (its ICP functions too: Open3D is imported now, not in a request)."""
         try:
-            self.model = load_model(self.settings.model_dir, self.settings.threads, self.settings.precision)
+            self.engine = Engine(load_model(self.settings.model_dir, self.settings.threads, self.settings.precision))
+            self.engine.warm_up()
             self.model_error = None
-            log.info("model %s loaded", self.model.info())
+            log.info("model %s loaded", self.require_model().info())
         except ModelLoadError as e:
-            self.model, self.model_error = None, str(e)
+            self.engine, self.model_error = None, str(e)
             log.error("model not loaded: %s", e)
 
-    def require_model(self) -> RewardModel:
-        if self.model is None:
+    def require_engine(self) -> Engine:
+        if self.engine is None:
             raise RequestError(503, f"model not loaded: {self.model_error}")
-        return self.model
+        return self.engine
+
+    def require_model(self) -> RewardModel:
+        return self.require_engine().scorer  # type: ignore[return-value]

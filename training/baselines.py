@@ -29,7 +29,7 @@ Defaults (stated, since the paper only names "Open3D 0.9.0 implementations"):
   edge-length (0.9) and distance (0.075) checkers, ``RANSACConvergenceCriteria(100000, 0.999)``, then
   the refinement ICP.
 - refinement ICP (after FGR / RANSAC): point-to-point, max correspondence distance
-  ``REFINE_MAX_DISTANCE`` = 0.05 (the distance PRANet-v2's ICP uses, ``pranet.service.icp``), 100
+  ``REFINE_MAX_DISTANCE`` = 0.05 (the distance PRANet-v2's ICP uses, ``pranet.engine.icp``), 100
   iterations, on the full (not down-sampled) clouds.
 
 Seeded RANSAC gave bit-identical transforms across runs with ``OMP_NUM_THREADS`` 1 and 2 (Open3D

@@ -6,10 +6,10 @@ pair_rng(seed, setting, i), 60, 0.5)``, as ``pranet-eval`` builds them), methods
 
 1. per setting and method: median and p95 latency (ms), success rate (rotation < 1° and translation
    < 0.01, ``core.metrics``), median errors. Methods: ``pranet-v1`` (agent only, in-process),
-   ``pranet-v2`` (agent + ICP: ``core.pipeline.register`` with ``service.icp.make_icp()``),
+   ``pranet-v2`` (agent + ICP: ``Engine.register`` with ``PAPER_V2``),
    ``pranet-v2-http`` (the same through a real ``pranet-serve`` on a loopback port, base64 clouds,
    client-side latency: encoding, HTTP, JSON), ``icp``, ``fgr-icp``, ``ransac-icp``
-   (``training.baselines``), ``ransac-pranet-icp`` (the same RANSAC, refined by ``service.icp.make_icp()``
+   (``training.baselines``), ``ransac-pranet-icp`` (the same RANSAC, refined by the engine's ICP
    instead of point-to-point ICP: the peer with the service's refinement) and ``small-gicp``
    (``small_gicp.align``, GICP from the identity);
 2. each method's median latency as a ratio to RANSAC+ICP's and to FGR+ICP's;
@@ -34,7 +34,6 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import base64
 import json
 import math
 import os
@@ -78,7 +77,6 @@ BREAKDOWN_PAIRS = (("pranet-v2", "pranet-v2-http"), ("pranet-adaptive", "pranet-
 PRANET_IN_PROCESS = ("pranet-v1", "pranet-v2")
 REFERENCES = ("ransac-icp", "fgr-icp")  # latency ratios are taken against these
 DEFAULT_SETTINGS = ("noisy", "partial")
-ENCODING = "base64-float32-le"
 SMALL_GICP_DOWNSAMPLING = 0.01  # unit-sphere shapes: keeps (almost) every point
 SERVER_START_TIMEOUT_S = 120.0
 
@@ -149,45 +147,29 @@ def small_gicp_align(
     return np.asarray(r.T_target_source, dtype=np.float64).copy()
 
 
-def pranet_method(
-    scorer: Any,
-    icp: Any,
-    early_stop: bool = False,
-    schedule: Sequence[int] | None = None,
-    exit_checks: Sequence[int] = (),
-    rescue_icp: Any = None,
-) -> MethodFn:
-    """PRANet in-process; ``exit_checks``/``rescue_icp`` as in ``core.pipeline.register`` (the adaptive variant)."""
-    from pranet.core.pipeline import register
+def pranet_method(engine: Any, config: Any) -> MethodFn:
+    """PRANet in-process through ``engine`` (``pranet.engine.Engine``) as ``config`` (a ``RegistrationConfig``)."""
 
     def run(pair: Pair, seed: int) -> Outcome:
         t0 = time.perf_counter()
-        rng = np.random.default_rng(seed)
-        reg = register(
-            pair.source,
-            pair.target,
-            scorer,
-            rng,
-            icp=icp,
-            early_stop=early_stop,
-            schedule=schedule,
-            exit_checks=exit_checks,
-            rescue_icp=rescue_icp,
-            rescue_restarts=rescue_icp is not None,
-        )
+        reg = engine.register(pair.source, pair.target, config, np.random.default_rng(seed))
         ms = (time.perf_counter() - t0) * 1e3
-        extra = {"timing_ms": reg.timing_ms, "n_steps": len(reg.trajectory), "agent_transform": reg.agent_transform}
+        extra = {
+            "timing_ms": reg.timing_ms,
+            "n_steps": len(reg.trajectory),
+            "agent_transform": reg.agent_T_target_source,
+        }
         if reg.agent is not None:  # steps after a translation: re-scored by head.onnx when the runtime reuses
-            moved = set(np.asarray(scorer.table.translation_indices).tolist())
+            moved = set(np.asarray(engine.scorer.table.translation_indices).tolist())
             extra["after_translation"] = sum(a.action in moved for a in reg.agent.steps[:-1])
-        return Outcome(reg.transform, ms, extra)
+        return Outcome(reg.T_target_source, ms, extra)
 
     return run
 
 
 def refined_by(coarse: Callable[[Array, Array, np.random.Generator], Array], icp: Any):
-    """``coarse`` (a baseline without refinement) followed by PRANet's ICP, in the unit frame as the pipeline runs it:
-    the classical peer with the same refinement as the service."""
+    """``coarse`` (a baseline without refinement) followed by PRANet's ICP (an ``IcpFn``, unit frame), as the
+    pipeline runs it: the classical peer with the same refinement as the service."""
     from pranet.core.preprocess import fit_normalization
 
     def fn(source: Array, target: Array, rng: np.random.Generator) -> Array:
@@ -209,16 +191,12 @@ def baseline_method(fn: Callable[[Array, Array, np.random.Generator], Array]) ->
     return run
 
 
-def encode_cloud(points: Array) -> dict[str, str]:
-    data = np.ascontiguousarray(points, dtype="<f4").tobytes()
-    return {"encoding": ENCODING, "data": base64.b64encode(data).decode("ascii")}
-
-
 def request_body(
     pair: Pair, seed: int, icp: bool = True, steps: Sequence[int] | None = None, adaptive: bool = False
 ) -> bytes:
     """``adaptive``: the service's default exit checks and rescue; else every step, no rescue (the paper's v2)."""
-    from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
+    from pranet.core.registration_config import SERVICE_DEFAULT
+    from pranet.core.wire import encode_cloud
 
     body: dict[str, Any] = {
         "source": encode_cloud(pair.source),
@@ -226,7 +204,7 @@ def request_body(
         "icp": icp,
         "seed": seed,
         "return_trajectory": False,
-        "exit_checks": list(DEFAULT_EXIT_CHECKS) if adaptive else [],
+        "exit_checks": list(SERVICE_DEFAULT.exit_checks) if adaptive else [],
         "rescue": adaptive,
     }
     if steps is not None:
@@ -526,7 +504,7 @@ def ort_variants_table(
     service worker: idle thread pools of other sessions, spinning, would otherwise slow whichever runs next."""
     import gc
 
-    from pranet.model.runtime import RewardModel
+    from pranet.engine.runtime import RewardModel
 
     variants = []
     for label, kw in ORT_VARIANTS:
@@ -765,7 +743,9 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
     # OpenMP threads (Open3D, small_gicp) that busy-wait at barriers collapse when a core is taken by another
     # process: small_gicp with 2 threads measured 800 ms instead of 4 ms per pair beside a training run.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from pranet.model.runtime import RewardModel, default_model_dir, read_card
+    from pranet.core.registration_config import PAPER_V1, PAPER_V2, SERVICE_DEFAULT
+    from pranet.engine.engine import Engine
+    from pranet.engine.runtime import RewardModel, default_model_dir, read_card
     from pranet.training import baselines
     from pranet.training.data import data_dir, load_modelnet40, test_indices
 
@@ -779,14 +759,13 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
         for s in args.settings
     }
     model_dir = Path(args.model) if args.model else default_model_dir()
-    scorer = RewardModel.load(model_dir, threads=args.threads)
+    engine = Engine.load(model_dir, threads=args.threads)
+    scorer = engine.scorer
     result["model"] = {**scorer.info(), "dir": str(args.model or "default (shipped)")}
     result["model_schedule"] = list(scorer.schedule)
-    from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
-    from pranet.service.icp import make_icp, make_rescue_icp
-
-    icp = make_icp()
-    rescue_icp = make_rescue_icp()
+    steps = {"schedule": tuple(args.steps) if args.steps else None}
+    v1, v2 = PAPER_V1.with_(**steps), PAPER_V2.with_(**steps)
+    icp = engine.icp(v2.icp_stages)
     tmp = Path(tempfile.mkdtemp(prefix="pranet-bench-"))
     try:
         # int8 graphs: the model directory's own, else quantized now into a temporary copy.
@@ -806,11 +785,9 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
         result["int8_source"] = int8_note
 
         fns: dict[str, MethodFn] = {
-            "pranet-v1": pranet_method(scorer, None, schedule=args.steps),
-            "pranet-v2": pranet_method(scorer, icp, schedule=args.steps),
-            "pranet-adaptive": pranet_method(
-                scorer, icp, schedule=args.steps, exit_checks=DEFAULT_EXIT_CHECKS, rescue_icp=rescue_icp
-            ),
+            "pranet-v1": pranet_method(engine, v1),
+            "pranet-v2": pranet_method(engine, v2),
+            "pranet-adaptive": pranet_method(engine, SERVICE_DEFAULT.with_(**steps)),
             "icp": baseline_method(baselines.icp),
             "fgr-icp": baseline_method(baselines.fgr_icp),
             "ransac-icp": baseline_method(baselines.ransac_icp),
@@ -822,15 +799,15 @@ def run(args: argparse.Namespace, command: str) -> dict[str, Any]:  # noqa: C901
         extra_fns: dict[str, MethodFn] = {}
         # Every step through score.onnx (no head-only re-scoring of translated sources): what that reuse buys.
         scorer_full = RewardModel.load(model_dir, threads=args.threads, reuse_translations=False)
-        extra_fns["pranet-full"] = pranet_method(scorer_full, icp, schedule=args.steps)
+        extra_fns["pranet-full"] = pranet_method(Engine(scorer_full), v2)
         if args.early_stop:
-            extra_fns["pranet-es"] = pranet_method(scorer, icp, early_stop=True, schedule=args.steps)
+            extra_fns["pranet-es"] = pranet_method(engine, v2.with_(early_stop=True))
         drift: DriftScorer | None = None
         if args.int8 and int8_dir is not None:
             scorer8 = RewardModel.load(int8_dir, threads=args.threads, precision="int8")
-            extra_fns["pranet-int8"] = pranet_method(scorer8, icp, schedule=args.steps)
+            extra_fns["pranet-int8"] = pranet_method(Engine(scorer8), v2)
             drift = DriftScorer(scorer, scorer8)
-            extra_fns["drift"] = pranet_method(drift, None, schedule=args.steps)
+            extra_fns["drift"] = pranet_method(Engine(drift), v1)
         records: list[Record] = []
         with served(server_settings(args.model, args.threads, 1, "fp32"), tmp) as url:
             import httpx
@@ -939,7 +916,7 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
     in the pranet-v1 records (what the default runtime re-scores with the head alone).
     """
     from pranet.core.knn import knn_indices
-    from pranet.model.runtime import HEAD_GRAPH, graph_files
+    from pranet.engine.runtime import HEAD_GRAPH, graph_files
 
     embed_file, score_file = graph_files("fp32")
     pts = np.asarray(source, dtype=np.float32)[None]

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pranet.engine.runtime import sha256_file
+
 DATA_ENV = "PRANET_DATA_DIR"
 DEFAULT_DATA_DIR = "../shared/data"
 SEEN_CATEGORIES = range(0, 20)
@@ -61,14 +63,6 @@ def load_modelnet40(root: Path, split: str) -> ModelNet40:
     return ModelNet40(np.concatenate(pts), np.concatenate(labels), tuple(files))
 
 
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 @dataclass(frozen=True)
 class Splits:
     train: np.ndarray  # indices into the train file, categories 0-19
@@ -79,7 +73,7 @@ class Splits:
         """sha256 over the data files and the chosen indices: the 'data hash' of a model card."""
         h = hashlib.sha256()
         for f in files:
-            h.update(file_sha256(f).encode())
+            h.update(sha256_file(f).encode())
         h.update(json.dumps({"train": self.train.tolist(), "val": self.val.tolist()}).encode())
         return h.hexdigest()
 

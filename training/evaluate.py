@@ -119,89 +119,61 @@ class Runner:
 
 
 def pranet_runner(
-    scorer: Any,
+    engine: Any,
     methods: Sequence[str] = PRANET_METHODS,
-    icp_fn: Any = None,
     policy: str = "deterministic",
     early_stop: bool = False,
 ) -> Runner:
-    """PRANet-v1 and/or -v2 from one ``register`` run per pair (v2 = v1's agent result + ICP)."""
-    from pranet.core.confidence import estimate_confidence
-    from pranet.core.pipeline import register
+    """PRANet through ``engine`` (``pranet.engine.Engine``): v1 and v2 from one ``PAPER_V2`` registration (its
+    agent-only and refined poses), the adaptive variant as the service's default (``SERVICE_DEFAULT``)."""
+    from pranet.core.registration_config import PAPER_V1, PAPER_V2, SERVICE_DEFAULT
 
+    options = {"policy": policy, "early_stop": early_stop}
     want_v2 = "pranet-v2" in methods
-    if want_v2 and icp_fn is None:
-        from pranet.service.icp import make_icp
-
-        icp_fn = make_icp()
-
     want_paper = "pranet-v1" in methods or want_v2
-    if "pranet-adaptive" in methods:
-        from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
-        from pranet.service.icp import make_icp, make_rescue_icp
-
-        adaptive_icp, rescue_icp = icp_fn or make_icp(), make_rescue_icp()
+    paper_config = (PAPER_V2 if want_v2 else PAPER_V1).with_(**options)
+    adaptive_config = SERVICE_DEFAULT.with_(**options)
 
     def run(pair: Pair, rng: np.random.Generator) -> dict[str, MethodOutput]:
         out: dict[str, MethodOutput] = {}
         if "pranet-adaptive" in methods:
             # Its own run, from the same generator state as the paper's v1/v2 run below.
             a_rng = np.random.default_rng(rng.bit_generator.seed_seq) if want_paper else rng
-            reg = register(
-                pair.source,
-                pair.target,
-                scorer,
-                a_rng,
-                icp=adaptive_icp,
-                policy=policy,
-                early_stop=early_stop,
-                exit_checks=DEFAULT_EXIT_CHECKS,
-                rescue_icp=rescue_icp,
-                rescue_restarts=rescue_icp is not None,
-            )
-            conf = reg.confidence
+            reg = engine.register(pair.source, pair.target, adaptive_config, a_rng)
             extra = {
                 "timing_ms": reg.timing_ms,
                 "n_steps": len(reg.trajectory),
                 "checks": reg.checks,
                 "rescued": reg.rescued,
-                "confidence": conf.score if conf else None,
-                "status": conf.status if conf else None,
+                "confidence": reg.confidence.score,
+                "status": reg.confidence.status,
             }
             traj = [T for _, _, T in reg.trajectory]
-            out["pranet-adaptive"] = MethodOutput(reg.transform, reg.timing_ms["total"], traj, extra)
+            out["pranet-adaptive"] = MethodOutput(reg.T_target_source, reg.timing_ms["total"], traj, extra)
         if not want_paper:
             return out
-        reg = register(pair.source, pair.target, scorer, rng, icp=None, policy=policy, early_stop=early_stop)
+        reg = engine.register(pair.source, pair.target, paper_config, rng)
         traj = [T for _, _, T in reg.trajectory]
-        v1_ms = reg.timing_ms["total"] - reg.timing_ms.get("confidence", 0.0)  # timed as the paper: no confidence
-        extra = {"timing_ms": reg.timing_ms, "n_steps": len(traj)}
-        if reg.confidence is not None:
-            extra.update(confidence=reg.confidence.score, status=reg.confidence.status)
+        t = reg.timing_ms
+        v1_ms = t["preprocess"] + t["target_embedding"] + t["agent_steps"]  # timed as the paper: no confidence
+        extra: dict[str, Any] = {"timing_ms": t, "n_steps": len(traj)}
         if reg.agent is not None and reg.agent.stopped_early:
             extra["stopped_early"] = list(reg.agent.stopped_early)
         if "pranet-v1" in methods:
-            out["pranet-v1"] = MethodOutput(reg.agent_transform, v1_ms, traj, extra)
-        if want_v2:
-            # The same ICP call that register(..., icp=icp_fn) makes, on the agent's unit-frame result.
-            norm = reg.normalization
-            t0 = time.perf_counter()
-            refined = icp_fn(norm.to_unit(pair.source), norm.to_unit(pair.target), reg.agent.transform)
-            T_v2 = norm.transform_to_world(refined.transform)
-            icp_ms = (time.perf_counter() - t0) * 1e3
-            conf = estimate_confidence(norm.to_unit(pair.source), norm.to_unit(pair.target), refined.transform)
-            out["pranet-v2"] = MethodOutput(
-                T_v2,
-                v1_ms + icp_ms,
-                traj,
-                {
-                    **extra,
-                    "icp_ms": icp_ms,
-                    "icp_fitness": refined.fitness,
-                    "confidence": conf.score,
-                    "status": conf.status,
-                },
+            v1_extra = (
+                extra if want_v2 else {**extra, "confidence": reg.confidence.score, "status": reg.confidence.status}
             )
+            out["pranet-v1"] = MethodOutput(reg.agent_T_target_source, v1_ms, traj, v1_extra)
+        if want_v2:
+            assert reg.icp is not None
+            v2_extra = {
+                **extra,
+                "icp_ms": t["icp"],
+                "icp_fitness": reg.icp.fitness,
+                "confidence": reg.confidence.score,
+                "status": reg.confidence.status,
+            }
+            out["pranet-v2"] = MethodOutput(reg.T_target_source, v1_ms + t["icp"], traj, v2_extra)
         return out
 
     return Runner(tuple(m for m in PRANET_METHODS if m in methods), run)
@@ -494,14 +466,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     pranet = [m for m in args.methods if m in PRANET_METHODS]
     trained_rotation = ""
     if pranet:
-        from pranet.model.runtime import RewardModel
+        from pranet.engine.engine import Engine
 
-        scorer = RewardModel.load(args.model, threads=args.threads)
+        engine = Engine.load(args.model, threads=args.threads)
+        scorer = engine.scorer
         model_info = {**scorer.info(), "dir": str(args.model or "default"), "n_points": scorer.n_points}
         model_info["training"] = scorer.card.get("training")
         trained_rotation = scorer.card.get("config", {}).get("sampling", {}).get("rotation", "")
         switch_step, n_steps = int(scorer.schedule[0]), int(sum(scorer.schedule))
-        runners.append(pranet_runner(scorer, pranet, policy=args.policy, early_stop=args.early_stop))
+        runners.append(pranet_runner(engine, pranet, policy=args.policy, early_stop=args.early_stop))
     baseline_params: dict[str, Any] = {}
     if any(m in BASELINE_METHODS for m in args.methods):
         from functools import partial

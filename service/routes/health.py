@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 
+from pranet.service.deps import ModelDep, StateDep
 from pranet.service.schemas import ErrorResponse, HealthResponse, ModelInfo, ReadyResponse
-from pranet.service.state import ServiceState
 
 router = APIRouter(tags=["health"])
 
@@ -21,9 +21,7 @@ def health() -> HealthResponse:
     summary="Readiness: the model is loaded and registrations are accepted",
     responses={503: {"model": ErrorResponse, "description": "model not loaded"}},
 )
-def ready(request: Request) -> ReadyResponse:
-    state: ServiceState = request.app.state.service
-    model = state.require_model()
+def ready(state: StateDep, model: ModelDep) -> ReadyResponse:
     admission = state.admission
     return ReadyResponse(
         model=ModelInfo(**model.info()),

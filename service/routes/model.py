@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 
+from pranet.service.deps import ModelDep
 from pranet.service.schemas import ErrorResponse
-from pranet.service.state import ServiceState
 
 router = APIRouter(tags=["model"])
 
@@ -17,7 +17,5 @@ router = APIRouter(tags=["model"])
     summary="The loaded model's card (name, version, action table, schedule, training metrics)",
     responses={503: {"model": ErrorResponse, "description": "model not loaded"}},
 )
-def model_card(request: Request) -> dict[str, Any]:
-    state: ServiceState = request.app.state.service
-    model = state.require_model()
+def model_card(model: ModelDep) -> dict[str, Any]:
     return {**model.card, "sha256": model.sha256}

@@ -9,10 +9,9 @@ import anyio
 from fastapi import APIRouter, Request
 from starlette.requests import ClientDisconnect
 
-from pranet.service.icp import make_icp, make_rescue_icp
+from pranet.service.deps import StateDep
 from pranet.service.registration import RequestError, run_registration
 from pranet.service.schemas import ErrorResponse, RegisterResponse
-from pranet.service.state import ServiceState
 
 router = APIRouter(tags=["registration"])
 
@@ -37,16 +36,15 @@ _errors = {
         }
     },
 )
-async def register_clouds(request: Request) -> RegisterResponse:
+async def register_clouds(request: Request, state: StateDep) -> RegisterResponse:
     """Both clouds in any (common) units; the result comes back in the same units.
 
     Clouds are nested lists ``[[x, y, z], ...]`` or ``{"encoding": "base64-float32-le", "data": ...}``.
     The body is parsed in a worker thread (large clouds must not block the event loop).
     """
-    state: ServiceState = request.app.state.service
     settings = state.settings
     deadline = time.monotonic() + settings.request_timeout_s  # queueing counts against the deadline
-    model = state.require_model()
+    engine = state.require_engine()
     media_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if media_type != "application/json":
         raise RequestError(415, f"Content-Type must be application/json, got {media_type or 'none'!r}")
@@ -58,10 +56,8 @@ async def register_clouds(request: Request) -> RegisterResponse:
         work = partial(
             run_registration,
             body,
-            scorer=model,
-            model_info=model.info(),
-            icp=make_icp(),
-            rescue_icp=make_rescue_icp(),
+            engine=engine,
+            model_info=state.require_model().info(),
             max_points=settings.max_points,
             deadline=deadline,
             admitted_at=time.perf_counter(),

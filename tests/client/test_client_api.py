@@ -194,3 +194,40 @@ def test_status_routes_and_wait_ready() -> None:
             client.ready()
         assert info.value.status_code == 503
         assert client.wait_ready(timeout=5.0, interval=0.01) == {"status": "ready"}
+
+
+def test_the_client_result_has_every_field_of_the_response_schema() -> None:
+    """Contract: a field the service adds to ``RegisterResponse`` must reach ``RegistrationResult`` (and back)."""
+    import dataclasses
+
+    pytest.importorskip("fastapi")
+    from pranet.client.client import RegistrationResult
+    from pranet.service.schemas import RegisterResponse
+
+    client_fields = {f.name for f in dataclasses.fields(RegistrationResult)} - {"raw"}
+    assert client_fields == set(RegisterResponse.model_fields)
+    body = {
+        "transform": np.eye(4).tolist(),
+        "rotation": np.eye(3).tolist(),
+        "translation": [0.0, 0.0, 0.0],
+        "trajectory": [],
+        "icp": {"applied": True, "fitness": 1.0, "inlier_rmse": 0.0},
+        "timing_ms": {"total": 1.0},
+        "model": {"name": "m", "version": "1", "sha256": "0" * 64},
+        "n_source": 10,
+        "n_target": 12,
+        "confidence": 0.9,
+        "status": "converged",
+        "initial_transform": np.eye(4).tolist(),
+        "exit_checks": [{"step": 20, "confidence": 0.9}],
+        "rescued": "restarts",
+    }
+    RegisterResponse.model_validate(body)  # a valid response...
+    result = RegistrationResult.from_json(body)  # ...read field by field
+    for name in client_fields:
+        value = getattr(result, name)
+        expected = body[name]
+        if isinstance(value, np.ndarray):
+            np.testing.assert_allclose(value, expected)
+        else:
+            assert value == expected, name

@@ -13,13 +13,14 @@ from scipy.spatial.transform import Rotation
 
 from pranet.core.metrics import isotropic_errors
 from pranet.core.pipeline import register
+from pranet.core.registration_config import RegistrationConfig
 from pranet.core.starts import geodesic_distances, start_rotations
 
 
 def test_identity_mode_carries_a_confidence():
     src, tgt, T = rotated_problem(20.0)
     reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0))
-    rot, trans = isotropic_errors(reg.transform, T)
+    rot, trans = isotropic_errors(reg.T_target_source, T)
     assert rot < 0.5 and trans < 0.01
     assert reg.confidence is not None and reg.confidence.score == pytest.approx(1.0)
     assert reg.confidence.status == "converged"
@@ -34,19 +35,19 @@ def test_global_mode_finds_a_150_degree_rotation_that_identity_misses():
     src, tgt, T = rotated_problem(150.0, scale=7.0)  # any units: the confidence lives in the unit frame
     assert np.degrees(geodesic_distances(T[None, :3, :3], start_rotations(24)).min()) < 60.0
     ident = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0))
-    assert isotropic_errors(ident.transform, T)[0] > 30.0
+    assert isotropic_errors(ident.T_target_source, T)[0] > 30.0
     assert ident.confidence.status == "suspect"
 
     oracle = BatchedRangeLimitedOracle(src, tgt, T)
-    reg = register(src, tgt, oracle, np.random.default_rng(0), init="global")
-    rot, trans = isotropic_errors(reg.transform, T)
+    reg = register(src, tgt, oracle, np.random.default_rng(0), RegistrationConfig(init="global"))
+    rot, trans = isotropic_errors(reg.T_target_source, T)
     assert rot < 0.5 and trans < 0.01 * 7.0, (rot, trans)
     assert reg.confidence.status == "converged" and reg.confidence.score > 0.9
     assert oracle.batch_calls == [24] * 60  # one batched call per step for all starts
     assert len(reg.start_scores) == 24 and reg.start_scores[reg.start_index] == max(reg.start_scores)
     # The trajectory is the winning start's, from its start pose
     assert len(reg.trajectory) == 60
-    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_transform)
+    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)
     start_R = reg.initial_transform[:3, :3]
     assert any(np.allclose(start_R, Q) for Q in start_rotations(24))
 
@@ -54,7 +55,8 @@ def test_global_mode_finds_a_150_degree_rotation_that_identity_misses():
 def test_global_mode_without_a_batched_scorer_and_with_fewer_starts():
     src, tgt, T = rotated_problem(150.0)
     oracle = RangeLimitedOracle(src, tgt, T)  # no batch_score_fn: score_fn is called per start
-    reg = register(src, tgt, oracle, np.random.default_rng(0), init="global", n_starts=12, schedule=(20, 10))
+    config = RegistrationConfig(init="global", n_starts=12, schedule=(20, 10))
+    reg = register(src, tgt, oracle, np.random.default_rng(0), config)
     assert oracle.calls == 12 * 30
     assert len(reg.start_scores) == 12
 
@@ -62,7 +64,7 @@ def test_global_mode_without_a_batched_scorer_and_with_fewer_starts():
 def test_unknown_init_is_refused():
     src, tgt, T = rotated_problem(10.0)
     with pytest.raises(ValueError, match="init"):
-        register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), init="random")
+        register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), RegistrationConfig(init="random"))
 
 
 def test_split_schedule_cuts_at_cumulative_steps():
@@ -86,14 +88,13 @@ def test_exit_checks_without_an_exit_take_the_same_steps_as_one_run():
         tgt,
         RangeLimitedOracle(src, tgt, T),
         np.random.default_rng(0),
+        RegistrationConfig(exit_checks=(20, 40), threshold=1.01),
         icp=never,
-        exit_checks=(20, 40),
-        confidence_threshold=1.01,
     )
     assert [s for s, _ in reg.checks] == [20, 40]
     assert [n for _, n, _ in reg.trajectory] == [n for _, n, _ in plain.trajectory]
     assert [s for s, _, _ in reg.trajectory] == list(range(60))
-    np.testing.assert_allclose(reg.agent_transform, plain.agent_transform, atol=1e-9)
+    np.testing.assert_allclose(reg.agent_T_target_source, plain.agent_T_target_source, atol=1e-9)
 
 
 def test_exit_check_stops_the_agent_once_icp_is_confident():
@@ -104,12 +105,12 @@ def test_exit_check_stops_the_agent_once_icp_is_confident():
         tgt,
         oracle,
         np.random.default_rng(0),
+        RegistrationConfig(exit_checks=(20, 40)),
         icp=snapping_icp(unit_truth(src, tgt, T), 10.0),
-        exit_checks=(20, 40),
     )
     assert oracle.calls == 20 and len(reg.trajectory) == 20  # the coarse phase only
     assert reg.checks == [(20, pytest.approx(1.0))]
-    rot, trans = isotropic_errors(reg.transform, T)
+    rot, trans = isotropic_errors(reg.T_target_source, T)
     assert rot < 1e-4 and trans < 1e-6
     assert reg.confidence.status == "converged" and not reg.rescued
 
@@ -120,11 +121,11 @@ def test_rescue_icp_wins_only_when_it_is_more_confident():
     icp = snapping_icp(truth, 10.0)
     wide_ok = lambda s, t, init: snapping_icp(truth, 180.0)(s, t, init)  # noqa: E731
     reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_ok)
-    assert reg.rescued == "wide_icp" and isotropic_errors(reg.transform, T)[0] < 1e-4
+    assert reg.rescued == "wide_icp" and isotropic_errors(reg.T_target_source, T)[0] < 1e-4
     assert reg.confidence.status == "converged"
     wide_bad = lambda s, t, init: snapping_icp(truth, 0.0)(s, t, init)  # noqa: E731  (stays at the input pose)
     reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_bad)
-    assert isotropic_errors(reg.transform, T)[0] > 30.0
+    assert isotropic_errors(reg.T_target_source, T)[0] > 30.0
     assert reg.confidence.status == "suspect"
 
 
@@ -135,20 +136,19 @@ def test_restarts_around_the_estimate_rescue_a_rotation_beyond_reach():
     src, tgt, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
     icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
     args = (src, tgt)
-    plain = register(
-        *args, RangeLimitedOracle(src, tgt, T, reach_deg=35.0), np.random.default_rng(0), icp=icp, early_stop=True
-    )
+    early = RegistrationConfig(early_stop=True)
+    plain = register(*args, RangeLimitedOracle(src, tgt, T, reach_deg=35.0), np.random.default_rng(0), early, icp=icp)
     assert plain.confidence.status == "suspect" and plain.rescued is None
     oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
-    reg = register(*args, oracle, np.random.default_rng(0), icp=icp, early_stop=True, rescue_restarts=True)
+    reg = register(*args, oracle, np.random.default_rng(0), early.with_(rescue_restarts=True), icp=icp)
     assert reg.rescued == "restarts" and reg.confidence.status == "converged"
-    assert isotropic_errors(reg.transform, T)[0] < 1e-4
+    assert isotropic_errors(reg.T_target_source, T)[0] < 1e-4
     assert oracle.batch_calls and oracle.batch_calls[0] == 6  # six restarts, one batched call per step
     assert "rescue" in reg.timing_ms
     # The winning restart's trajectory is returned, from its start 30° about x off the identity.
     start_angle = np.degrees(np.linalg.norm(Rotation.from_matrix(reg.initial_transform[:3, :3]).as_rotvec()))
     assert start_angle == pytest.approx(30.0)
-    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_transform)
+    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)
 
 
 def test_timing_stages_are_non_negative_and_add_up_to_the_total():
@@ -167,9 +167,8 @@ def test_timing_stages_are_non_negative_and_add_up_to_the_total():
         tgt,
         RangeLimitedOracle(src, tgt, T),
         np.random.default_rng(0),
+        RegistrationConfig(exit_checks=(20, 40), threshold=1.01),
         icp=slow_icp,
-        exit_checks=(20, 40),
-        confidence_threshold=1.01,
     )
     t = reg.timing_ms
     stages = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence", "rescue")

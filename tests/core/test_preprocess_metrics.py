@@ -4,7 +4,8 @@ from scipy.spatial.transform import Rotation
 
 from pranet.core.knn import knn_indices
 from pranet.core.metrics import clean_l2, evaluate_pair, isotropic_errors, modified_chamfer
-from pranet.core.preprocess import DegenerateCloudError, check_cloud, fit_normalization, prepare_pair
+from pranet.core.pipeline import prepare
+from pranet.core.preprocess import DegenerateCloudError, check_cloud, fit_normalization
 from pranet.core.se3 import apply_transform, make_transform
 
 
@@ -21,14 +22,17 @@ def test_normalization_round_trip_of_transforms():
     assert np.linalg.norm(norm.to_unit(tgt), axis=1).max() == pytest.approx(1.0)
 
 
-def test_prepare_pair_resamples_seeded():
+def test_prepare_resamples_seeded_rows_of_the_unit_clouds():
     rng = np.random.default_rng(1)
     a, b = rng.standard_normal((1000, 3)), rng.standard_normal((50, 3))
-    s1, t1, _ = prepare_pair(a, b, 256, np.random.default_rng(3))
-    s2, t2, _ = prepare_pair(a, b, 256, np.random.default_rng(3))
-    assert s1.shape == t1.shape == (256, 3)
-    np.testing.assert_array_equal(s1, s2)
-    np.testing.assert_array_equal(t1, t2)
+    p1, p2 = prepare(a, b, 256, np.random.default_rng(3)), prepare(a, b, 256, np.random.default_rng(3))
+    assert p1.src_n.shape == p1.tgt_n.shape == (256, 3)
+    np.testing.assert_array_equal(p1.src_n, p2.src_n)
+    np.testing.assert_array_equal(p1.tgt_n, p2.tgt_n)
+    # Every resampled row is a row of the unit-frame cloud (without replacement from 1000, with it from 50).
+    unit_a = p1.norm.to_unit(a)
+    assert all(np.isclose(unit_a, row).all(axis=1).any() for row in p1.src_n)
+    assert len(np.unique(p1.src_n, axis=0)) == 256
 
 
 @pytest.mark.parametrize(

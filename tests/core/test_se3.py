@@ -8,7 +8,6 @@ from pranet.core.se3 import (
     axis_rotation,
     inverse,
     make_transform,
-    project_to_rotation,
     rotation_angle,
 )
 
@@ -47,12 +46,3 @@ def test_apply_and_inverse_convention(rng):
     np.testing.assert_allclose(tgt, (R @ src.T).T + t)  # target = R @ source + t
     np.testing.assert_allclose(apply_transform(inverse(T), tgt), src, atol=1e-12)
     np.testing.assert_allclose(inverse(T) @ T, np.eye(4), atol=1e-12)
-
-
-def test_project_to_rotation(rng):
-    R = Rotation.random(random_state=2).as_matrix()
-    noisy = R + 1e-4 * rng.standard_normal((3, 3))
-    P = project_to_rotation(noisy)
-    np.testing.assert_allclose(P @ P.T, np.eye(3), atol=1e-12)
-    assert np.linalg.det(P) == pytest.approx(1.0)
-    np.testing.assert_allclose(P, R, atol=1e-3)

@@ -10,7 +10,7 @@ pytest.importorskip("onnxruntime")
 
 
 def test_batched_rows_equal_single_calls():
-    from pranet.model.runtime import RewardModel
+    from pranet.engine.runtime import RewardModel
 
     model = RewardModel.load(threads=1)
     rng = np.random.default_rng(0)

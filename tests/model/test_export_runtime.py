@@ -9,10 +9,10 @@ pytest.importorskip("onnxruntime")
 
 from pranet.core.actions import build_action_table  # noqa: E402
 from pranet.core.knn import knn_indices  # noqa: E402
+from pranet.engine.runtime import ModelLoadError, RewardModel, default_model_dir, read_card  # noqa: E402
 from pranet.model.config import NetConfig  # noqa: E402
 from pranet.model.export import export_model  # noqa: E402
 from pranet.model.network import RewardNet  # noqa: E402
-from pranet.model.runtime import ModelLoadError, RewardModel, default_model_dir, read_card  # noqa: E402
 
 
 @pytest.fixture(scope="module")

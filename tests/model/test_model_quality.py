@@ -16,7 +16,8 @@ pytest.importorskip("open3d")
 from pranet.core.metrics import isotropic_errors  # noqa: E402
 from pranet.core.pipeline import register  # noqa: E402
 from pranet.core.preprocess import fit_normalization  # noqa: E402
-from pranet.model.runtime import RewardModel, default_model_dir  # noqa: E402
+from pranet.core.registration_config import PAPER_V1  # noqa: E402
+from pranet.engine.runtime import RewardModel, default_model_dir  # noqa: E402
 
 PAIRS = 12  # the first pairs of pranet-eval's clean setting (seed 1234, unseen categories)
 MARGIN_DEG = 2.0
@@ -29,10 +30,11 @@ def card_bound(card: dict) -> float:
 
 
 def agent_vs_icp(model: RewardModel, shapes: np.ndarray) -> tuple[dict, dict]:
+    from pranet.engine.engine import Engine
     from pranet.training import baselines
     from pranet.training.evaluate import baseline_runner, evaluate, pranet_runner
 
-    runners = [pranet_runner(model, ("pranet-v1",)), baseline_runner("icp", baselines.icp)]
+    runners = [pranet_runner(Engine(model), ("pranet-v1",)), baseline_runner("icp", baselines.icp)]
     summary = evaluate(shapes, "clean", runners, progress=False)["summary"]
     return summary["pranet-v1"], summary["icp"]
 
@@ -89,8 +91,8 @@ def test_shipped_agent_alone_on_the_bunny(scans_dir: Path) -> None:
     T_gt = np.array([float(x) for x in row.split(",")[3].split()]).reshape(4, 4)
     source, target = read_point_cloud(scans_dir / "bun000.ply"), read_point_cloud(scans_dir / "bun045.ply")
     model = RewardModel.load(default_model_dir(), threads=1)
-    reg = register(source, target, model, np.random.default_rng(0), icp=None)
-    agent_rot, _ = isotropic_errors(reg.agent_transform, T_gt)
+    reg = register(source, target, model, np.random.default_rng(0), PAPER_V1)
+    agent_rot, _ = isotropic_errors(reg.agent_T_target_source, T_gt)
     norm = fit_normalization(source, target)
     rng = np.random.default_rng(0)
     sub_s = norm.to_unit(source[rng.choice(len(source), 2000, replace=False)])

@@ -11,8 +11,8 @@ pytest.importorskip("onnxruntime")
 pytest.importorskip("onnx")
 
 from pranet.core.preprocess import fit_normalization, resample  # noqa: E402
+from pranet.engine.runtime import ModelLoadError, RewardModel, default_model_dir, read_card  # noqa: E402
 from pranet.model.quantize import INT8_GRAPHS, quantize_model_dir  # noqa: E402
-from pranet.model.runtime import ModelLoadError, RewardModel, default_model_dir, read_card  # noqa: E402
 
 
 @pytest.fixture(scope="module")

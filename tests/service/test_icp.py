@@ -7,14 +7,15 @@ from scipy.spatial.transform import Rotation
 pytest.importorskip("open3d")
 
 from pranet.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION, isotropic_errors  # noqa: E402
-from pranet.service.icp import (  # noqa: E402
-    DEFAULT_STAGES,
+from pranet.core.registration_config import (  # noqa: E402
+    DEFAULT_ICP_STAGES,
     POINT_TO_PLANE,
     POINT_TO_POINT,
-    make_icp,
-    make_rescue_icp,
+    RESCUE_WINDOW,
+    SERVICE_DEFAULT,
     two_windows,
 )
+from pranet.engine.icp import make_icp  # noqa: E402
 
 
 def biased_pair(seed: int = 0):
@@ -55,7 +56,7 @@ def success(T_est, T_gt) -> bool:
 
 
 def test_default_stages_are_point_to_plane_then_point_to_point():
-    assert DEFAULT_STAGES == two_windows(POINT_TO_PLANE) + two_windows(POINT_TO_POINT)
+    assert DEFAULT_ICP_STAGES == SERVICE_DEFAULT.icp_stages == two_windows(POINT_TO_PLANE) + two_windows(POINT_TO_POINT)
     assert two_windows(POINT_TO_POINT) == ((POINT_TO_POINT, 0.1), (POINT_TO_POINT, 0.05))
 
 
@@ -120,7 +121,7 @@ def test_rescue_icp_reaches_the_truth_from_beyond_the_default_window():
     T[:3, 3] = [0.0, 0.0, 0.4]
     target = source @ T[:3, :3].T + T[:3, 3]
     assert not success(make_icp()(source, target, np.eye(4)).transform, T)
-    assert success(make_rescue_icp()(source, target, np.eye(4)).transform, T)
+    assert success(make_icp(((POINT_TO_POINT, RESCUE_WINDOW),))(source, target, np.eye(4)).transform, T)
 
 
 @pytest.mark.parametrize("stages", [(), (("point_to_line", 0.1),), ((POINT_TO_POINT, 0.0),)])

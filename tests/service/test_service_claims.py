@@ -18,7 +18,7 @@ from live_server import start_live_server
 from service_helpers import b64, bumpy_shape, rotation_error_deg, synthetic_pair
 from test_service_ops import _slow_body, _tiny_body, _wait_in_flight
 
-from pranet.model.runtime import default_model_dir
+from pranet.engine.runtime import default_model_dir
 from pranet.service.schemas import MAX_STEPS_PER_SCALE
 
 

@@ -17,7 +17,7 @@ import pytest
 from live_server import LiveServer, clean_env, console_script, free_port, start_live_server
 from service_helpers import b64, synthetic_pair
 
-from pranet.model.runtime import default_model_dir
+from pranet.engine.runtime import default_model_dir
 
 API_KEY = "test-key-0123456789"
 AUTH = {"Authorization": f"Bearer {API_KEY}"}

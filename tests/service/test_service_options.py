@@ -95,6 +95,7 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
 
     from oracle_scorer import BatchedRangeLimitedOracle, rotated_problem, snapping_icp, unit_truth
 
+    from pranet.engine.engine import Engine
     from pranet.service.registration import run_registration
 
     src, tgt, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
@@ -105,7 +106,9 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
         body = json.dumps({"source": src.tolist(), "target": tgt.tolist(), "early_stop": True, **options}).encode()
         oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
         info = {"name": "oracle", "version": "0", "sha256": "0" * 64}
-        out = run_registration(body, oracle, info, icp, 10**6, time.monotonic() + 60, rescue_icp=stays)
+        # The engine's ICP functions: the snapping stand-in for the refinement, the one that stays for the wide pass.
+        engine = Engine(oracle, icp_factory=lambda stages: stays if len(stages) == 1 else icp)
+        out = run_registration(body, engine, info, 10**6, time.monotonic() + 60)
         return out.model_dump()
 
     rescued = run()

@@ -143,7 +143,7 @@ def test_refined_by_runs_the_service_icp_in_the_unit_frame_and_returns_world_uni
     from scipy.spatial.transform import Rotation
 
     from pranet.core.metrics import isotropic_errors
-    from pranet.service.icp import make_icp
+    from pranet.engine.icp import make_icp
 
     rng = np.random.default_rng(0)
     u = rng.standard_normal((1500, 3))

@@ -11,6 +11,7 @@ import pytest
 from pranet.core.actions import DEFAULT_SCHEDULE, build_action_table
 from pranet.core.agent import oracle_score_fn
 from pranet.core.preprocess import check_cloud, fit_normalization
+from pranet.engine.engine import Engine
 from pranet.training import evaluate as ev
 from pranet.training.samples import Pair, make_pair, pair_rng
 
@@ -77,7 +78,7 @@ def test_wrong_estimate_is_measured(shapes):
 def test_oracle_agent_through_the_pranet_runner(shapes):
     """The agent with exact rewards lands within the fine step sizes (v1); ICP then closes the gap (v2)."""
     pair = make_pair(shapes[0], "clean", pair_rng(1234, "clean", 0))
-    runner = ev.pranet_runner(OracleScorer(pair), ev.PRANET_METHODS)
+    runner = ev.pranet_runner(Engine(OracleScorer(pair)), ev.PRANET_METHODS)
     out = runner.fn(pair, np.random.default_rng(0))
     assert set(out) == {"pranet-v1", "pranet-v2", "pranet-adaptive"}
     assert len(out["pranet-v1"].trajectory) == sum(DEFAULT_SCHEDULE)

@@ -1,4 +1,6 @@
-"""ICP refinement with Open3D (PRANet-v2), in the model's unit frame."""
+"""ICP refinement with Open3D (PRANet-v2), in the model's unit frame: ``make_icp(stages)`` -> an ``IcpFn``.
+
+The stages are data of ``core.registration_config``; ``pranet.engine.Engine`` makes one function per config."""
 
 from __future__ import annotations
 
@@ -9,42 +11,22 @@ import numpy as np
 
 from pranet.core.confidence import subsample
 from pranet.core.pipeline import IcpResult
+from pranet.core.registration_config import (
+    DEFAULT_ICP_STAGES,
+    ICP_METHODS,
+    POINT_TO_PLANE,
+    POINT_TO_POINT,
+    IcpStage,
+)
 from pranet.core.se3 import Array
 
-POINT_TO_POINT, POINT_TO_PLANE = "point_to_point", "point_to_plane"
-METHODS = (POINT_TO_POINT, POINT_TO_PLANE)
-Stage = tuple[str, float]  # (estimation method, max correspondence distance in the unit frame)
-
-DEFAULT_MAX_DISTANCE = 0.1  # unit frame (unit-sphere clouds); why 0.1: docs/DESIGN.md "ICP of PRANet-v2"
-# A second pass from the first one's result with the window of the baselines' refinement (training.baselines):
-# fewer outlier matches once aligned. On all 1266 pairs of the shipped model's v2 runs: noisy success 87.8 ->
-# 89.3 %, partial 11.2 -> 20.6 % (docs/PERFORMANCE.md).
-DEFAULT_REFINE_DISTANCE = 0.05
-
-
-def two_windows(
-    method: str, max_distance: float = DEFAULT_MAX_DISTANCE, refine_distance: float = DEFAULT_REFINE_DISTANCE
-) -> tuple[Stage, ...]:
-    """``method`` within ``max_distance``, then again within ``refine_distance`` from that result."""
-    return ((method, max_distance), (method, refine_distance))
-
-
-# The refinement of PRANet-v2 and of the service: point-to-plane in both windows, then point-to-point in both.
-# Point-to-plane slides along the surface and reaches the truth from farther off (a wider basin); with normals
-# estimated from noisy points it stops less precisely, so point-to-point finishes. Chosen on the validation
-# shapes (seen categories, held out from training; `python scripts/icp_select.py`): service-default success on
-# noisy pairs 91.2 -> 93.2 %, partial 36.0 -> 51.0 % against point-to-point alone (docs/DESIGN.md).
-DEFAULT_STAGES: tuple[Stage, ...] = two_windows(POINT_TO_PLANE) + two_windows(POINT_TO_POINT)
-# The rescue of unconfident results: ICP from the input pose with a wide window (that of the ICP baseline),
-# refined afterwards by the pipeline's own ICP.
-RESCUE_MAX_DISTANCE = 0.5
+Stage = IcpStage  # (estimation method, max correspondence distance in the unit frame)
 NORMAL_RADIUS = 0.4  # unit frame; target normals (point-to-plane): PCA over at most NORMAL_MAX_NN neighbours
 NORMAL_MAX_NN = 30
 DEFAULT_VOXEL = 0.01  # downsample larger targets before ICP
 MAX_POINTS_BEFORE_VOXEL = 20000
-# ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed
-# random subset of 5000 is 3x faster on the 40k-point bunny scans and no less accurate (0.57° against 1.04° with
-# the 0.01 voxel grid; scripts/scan_check.py). ModelNet40 clouds (<= 1024 points) are not touched.
+# ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed random
+# subset is faster on large scans and no less accurate than a voxel grid (docs/DESIGN.md, "ICP on real scans").
 MAX_SOURCE_POINTS = 5000
 
 
@@ -56,18 +38,18 @@ def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
     return pc
 
 
-def make_icp(stages: Sequence[Stage] = DEFAULT_STAGES, max_iterations: int = 50):  # -> IcpFn
+def make_icp(stages: Sequence[Stage] = DEFAULT_ICP_STAGES, max_iterations: int = 50):  # -> IcpFn
     """An ``IcpFn`` running Open3D's ICP from the agent's estimate, one pass per ``(method, max_distance)``
-    stage, each from the previous one's result (``DEFAULT_STAGES``: point-to-plane at 0.1 and 0.05, then
-    point-to-point at 0.1 and 0.05). Target normals, when a stage needs them, are estimated once per call."""
+    stage, each from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 0.1 and 0.05, then
+    point-to-point at 0.1 and 0.05). The target's preparation (voxel grid, normals) is cached per content."""
     import open3d as o3d
 
     stages = tuple((str(m), float(d)) for m, d in stages)
     if not stages:
         raise ValueError("ICP needs at least one stage")
     for m, d in stages:
-        if m not in METHODS or not d > 0:
-            raise ValueError(f"bad ICP stage ({m!r}, {d}): method in {METHODS}, distance > 0")
+        if m not in ICP_METHODS or not d > 0:
+            raise ValueError(f"bad ICP stage ({m!r}, {d}): method in {ICP_METHODS}, distance > 0")
     reg = o3d.pipelines.registration
     estimations = {
         POINT_TO_POINT: reg.TransformationEstimationPointToPoint(),
@@ -102,8 +84,3 @@ def make_icp(stages: Sequence[Stage] = DEFAULT_STAGES, max_iterations: int = 50)
         return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
 
     return icp
-
-
-def make_rescue_icp():  # -> IcpFn
-    """The wide-window ICP of the rescue (``core.pipeline.register(rescue_icp=...)``), one pass."""
-    return make_icp(((POINT_TO_POINT, RESCUE_MAX_DISTANCE),))

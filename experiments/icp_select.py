@@ -1,8 +1,8 @@
 """Choose the ICP refinement of PRANet-v2 and the service: candidate stage lists, each run inside the service's
 default pipeline (exit checks 20/40, rescues), on the same pairs (docs/DESIGN.md, "ICP of PRANet-v2").
 
-    python scripts/icp_select.py                  # validation shapes, 511 noisy + 200 partial pairs (~20 min)
-    python scripts/icp_select.py --split test --pairs 0,300   # the unseen test shapes (1266 + 300), afterwards
+    python experiments/icp_select.py                  # validation shapes, 511 noisy + 200 partial pairs (~20 min)
+    python experiments/icp_select.py --split test --pairs 0,300   # the unseen test shapes (1266 + 300), afterwards
 
 ``--split val``: the shapes of the seen categories that training held out for validation
 (``training.data.split_train_val`` with the committed split seed), never trained on; pairs seeded 4321.
@@ -19,9 +19,8 @@ import argparse
 import numpy as np
 
 from pranet.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION, isotropic_errors
-from pranet.core.pipeline import DEFAULT_EXIT_CHECKS
-from pranet.model.runtime import RewardModel, default_model_dir
-from pranet.service.icp import POINT_TO_PLANE, POINT_TO_POINT, make_icp, make_rescue_icp, two_windows
+from pranet.core.registration_config import POINT_TO_PLANE, POINT_TO_POINT, SERVICE_DEFAULT, two_windows
+from pranet.engine.engine import Engine
 from pranet.training.bench import as_float32, pair_seed, pranet_method
 from pranet.training.config import PRESETS
 from pranet.training.data import data_dir, load_modelnet40, split_train_val, test_indices
@@ -49,9 +48,8 @@ def main() -> None:
     else:
         data = load_modelnet40(data_dir(), "test")
         idx, seed = test_indices(data.labels), 1234
-    scorer = RewardModel.load(args.model or default_model_dir(), threads=args.threads)
-    rescue = make_rescue_icp()
-    print(f"split {args.split}: {len(idx)} shapes, pair seed {seed}, model {scorer.info()['version']}\n")
+    engine = Engine.load(args.model, threads=args.threads)
+    print(f"split {args.split}: {len(idx)} shapes, pair seed {seed}, model {engine.scorer.info()['version']}\n")
     print("| setting | ICP stages | pairs | success % | median ms |")
     print("| --- | --- | --- | --- | --- |")
     settings = args.settings.split(",")
@@ -63,7 +61,7 @@ def main() -> None:
             for i, j in enumerate(idx[: n or None])
         ]
         for name, stages in CANDIDATES.items():
-            run = pranet_method(scorer, make_icp(stages), exit_checks=DEFAULT_EXIT_CHECKS, rescue_icp=rescue)
+            run = pranet_method(engine, SERVICE_DEFAULT.with_(icp_stages=stages))
             ok, ms = [], []
             for i, pair in enumerate(pairs):
                 out = run(pair, pair_seed(seed, setting, i))  # the service's default: exit checks, both rescues

@@ -1,17 +1,17 @@
 """The reward network in onnxruntime (no torch): what the service and the evaluation run.
 
-``RewardModel.load(model_dir)`` checks the model card, the sha256 of both graphs and the action
-table fingerprint against this package's action table, then opens two CPU sessions with explicit
-thread settings. ``model.score_fn(target)`` embeds the target once and returns the
-``score_fn(source, target) -> rewards`` the agent loop calls; it computes the source kNN graph on
-its first call and reuses it (rigid motion does not change it); the feeds of the per-step score call
-are built once, only the source buffer is refilled each step.
+``RewardModel.load(model_dir)`` checks the model card, the sha256 of its graphs (``embed.onnx``,
+``score.onnx`` and, when listed, ``head.onnx``) and the action table fingerprint against this package's
+action table, then opens one CPU session per graph with explicit thread settings.
+``model.batch_score_fn(target)`` embeds the target once and returns the ``score(sources, target) ->
+rewards`` the agent loop calls (``score_fn`` is the same with one source); it computes the source kNN
+graph on its first call and reuses it (rigid motion does not change it).
 
 Translation steps: the network embeds each cloud about its own centroid (``center_inputs``), so a
 translated source has the same features, attention and soft correspondences; only the centroid offset
-fed to the MLP heads changes. ``score.onnx`` also returns those pair features, and when the source's
-centred points equal the previous call's (to ``SAME_SHAPE_ATOL``: the last action was a translation),
-``score_fn`` re-scores with ``head.onnx`` (the MLP heads, microseconds) instead of the whole network.
+fed to the heads changes. ``score.onnx`` also returns those pair features, and when a source's centred
+points equal a row of the previous call's (to ``SAME_SHAPE_ATOL``: the last action was a translation),
+it is re-scored with ``head.onnx`` (the heads alone, microseconds) instead of the whole network.
 The rewards agree with a full call to float32 rounding (``tests/model/test_export_runtime.py``). Model
 directories without ``head.onnx`` (exported before it) run every step through ``score.onnx``.
 
@@ -75,8 +75,13 @@ def default_model_dir() -> Path:
     return Path(str(resources.files("pranet.model") / "default"))
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+def sha256_file(path: str | Path) -> str:
+    """The hex sha256 of a file's bytes, read in 1 MiB blocks (model graphs, checkpoints, data files)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> dict[str, Any]:
@@ -108,7 +113,7 @@ def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> 
         path = model_dir / name
         if not path.is_file():
             raise ModelLoadError(f"missing model graph {path}")
-        if verify and _sha256(path) != files.get(name):
+        if verify and sha256_file(path) != files.get(name):
             raise ModelLoadError(f"{path}: sha256 does not match the model card (corrupt or replaced file)")
     table = build_action_table(card["actions"]["scales"])
     if table.fingerprint != card["actions"]["fingerprint"]:
@@ -213,51 +218,14 @@ class RewardModel:
         return self._score.run(["rewards"], {name: feeds[name] for name in self._score_inputs})[0]
 
     def score_fn(self, target: npt.ArrayLike) -> ScoreFn:
-        """A ``score_fn`` for one registration onto ``target: (M, 3)`` (embedded here, once).
-
-        The feeds are built once: the target's points, features and centroid and the source's kNN graph
-        (computed on the first call: the agent only moves the source rigidly) never change; each step
-        only copies the moved source into a preallocated float32 buffer. A source that is only translated
-        since the previous call is re-scored by the head graph from the cached pair features. The
-        function counts its calls in ``score.calls``: ``{"full": ..., "head": ...}``.
-        """
-        t_pts = np.ascontiguousarray(np.asarray(target, dtype=np.float32)[None])
-        t_feat, t_cen, _ = self.embed(t_pts)
-        feeds: dict[str, np.ndarray] = {}
-        run = self._score.run
-        head = self._head if self.reuse_translations else None
-        cache: dict[str, np.ndarray] = {}  # "centred": (N, 3) of the last full call, "pair": its pair features
-        calls = {"full": 0, "head": 0}
+        """A ``score_fn(source (N, 3), target) -> (A,)`` for one registration onto ``target: (M, 3)``: the batched
+        function below with one row (the same caching and head-only re-scoring). Counts in ``score.calls``."""
+        batched = self.batch_score_fn(target)
 
         def score(source: np.ndarray, _target: np.ndarray) -> np.ndarray:
-            if not feeds:
-                pts = np.empty((1, *np.shape(source)), dtype=np.float32)
-                pts[0] = source
-                all_feeds = {
-                    "points": pts,
-                    "knn": knn_indices(pts, self.k),
-                    "target_points": t_pts,
-                    "target_features": t_feat,
-                    "target_centroid": t_cen,
-                }
-                feeds.update({name: all_feeds[name] for name in self._score_inputs})
-            else:
-                feeds["points"][0] = source  # cast to float32 in place: no allocation per step
-            if head is None:
-                calls["full"] += 1
-                return run(None, feeds)[0][0]
-            pts = feeds["points"][0]
-            centroid = pts.mean(axis=0, keepdims=True)
-            centred = pts - centroid
-            if cache and np.abs(centred - cache["centred"]).max() <= SAME_SHAPE_ATOL:
-                calls["head"] += 1
-                return head.run(None, {"pair_features": cache["pair"], "offset": centroid - t_cen})[0][0]
-            calls["full"] += 1
-            rewards, pair = run(None, feeds)
-            cache["centred"], cache["pair"] = centred, pair
-            return rewards[0]
+            return batched(np.asarray(source)[None], _target)[0]
 
-        score.calls = calls  # type: ignore[attr-defined]
+        score.calls = batched.calls  # type: ignore[attr-defined]
         return score
 
     def batch_score_fn(self, target: npt.ArrayLike) -> BatchScoreFn:

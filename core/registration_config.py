@@ -1,0 +1,102 @@
+"""What a registration does, as data: one frozen ``RegistrationConfig``, and the named configurations.
+
+The one source of truth for the registration knobs: ICP stages and windows, exit checks, rescues, the
+confidence threshold, global-mode starts, the policy and the schedule. ``core.pipeline.register`` reads it;
+``pranet.engine`` builds the ICP functions it names; the service maps a request onto ``SERVICE_DEFAULT``;
+``pranet-eval`` and ``pranet-bench`` run ``PAPER_V1``, ``PAPER_V2`` and ``SERVICE_DEFAULT``.
+Data only (no ICP, no model), so that every layer may import it. Why each default is what it is: docs/DESIGN.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from pranet.core.confidence import DEFAULT_THRESHOLD
+from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
+
+POINT_TO_POINT, POINT_TO_PLANE = "point_to_point", "point_to_plane"
+ICP_METHODS = (POINT_TO_POINT, POINT_TO_PLANE)
+IcpStage = tuple[str, float]  # (estimation method, max correspondence distance in the unit frame)
+INITS = ("identity", "global")
+POLICIES = ("deterministic", "stoch1", "stoch2")
+
+# Unit-frame windows (clouds scaled into the unit sphere): the first pass within 0.1, a second one within the
+# baselines' 0.05 from its result (docs/DESIGN.md, "ICP of PRANet-v2").
+ICP_WINDOW = 0.1
+ICP_REFINE_WINDOW = 0.05
+RESCUE_WINDOW = 0.5  # the rescue's wide ICP from the input pose (the ICP baseline's window)
+
+
+def two_windows(
+    method: str, window: float = ICP_WINDOW, refine_window: float = ICP_REFINE_WINDOW
+) -> tuple[IcpStage, ...]:
+    """``method`` within ``window``, then again within ``refine_window`` from that result."""
+    return ((method, window), (method, refine_window))
+
+
+# Point-to-plane reaches the truth from farther off; point-to-point finishes more precisely on noisy normals.
+DEFAULT_ICP_STAGES: tuple[IcpStage, ...] = two_windows(POINT_TO_PLANE) + two_windows(POINT_TO_POINT)
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Everything about a registration but the clouds, the model and the seed.
+
+    ``icp_stages``: the refinement, one Open3D ICP pass per ``(method, window)`` from the previous result; ``()``
+    = no ICP (PRANet-v1). With ICP: ``exit_checks`` refine after those cumulative agent steps and stop once the
+    result is confident (identity mode); ``rescue_window`` (or ``None``) runs a wide ICP from the input pose when
+    the result stays below ``threshold``, and ``rescue_restarts`` reruns the coarse phase from six starts 30°
+    around the best estimate. ``init="global"`` starts the agent from ``n_starts`` rotations and refines the
+    ``refine_top`` most confident. ``schedule``: steps per step-size scale (``None`` = the model's).
+    """
+
+    icp_stages: tuple[IcpStage, ...] = ()
+    exit_checks: tuple[int, ...] = ()
+    rescue_window: float | None = None
+    rescue_restarts: bool = False
+    threshold: float = DEFAULT_THRESHOLD
+    init: str = "identity"
+    n_starts: int = DEFAULT_STARTS
+    refine_top: int = 3
+    policy: str = "deterministic"
+    early_stop: bool = False
+    schedule: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        for method, window in self.icp_stages:
+            if method not in ICP_METHODS or not window > 0:
+                raise ValueError(f"bad ICP stage ({method!r}, {window}): method in {ICP_METHODS}, window > 0")
+        if self.rescue_window is not None and not self.rescue_window > 0:
+            raise ValueError(f"rescue_window must be > 0 or None, got {self.rescue_window}")
+        if self.init not in INITS:
+            raise ValueError(f"unknown init {self.init!r}; choose from {INITS}")
+        if self.policy not in POLICIES:
+            raise ValueError(f"unknown policy {self.policy!r}; choose from {POLICIES}")
+        if not 1 <= self.n_starts <= MAX_STARTS:
+            raise ValueError(f"n_starts must be in [1, {MAX_STARTS}], got {self.n_starts}")
+        if self.refine_top < 1:
+            raise ValueError(f"refine_top must be >= 1, got {self.refine_top}")
+
+    @property
+    def refines(self) -> bool:
+        """Whether ICP refines the agent's result (PRANet-v2 and the service) or not (PRANet-v1)."""
+        return bool(self.icp_stages)
+
+    def with_(self, **changes: object) -> RegistrationConfig:
+        """A copy with ``changes`` (validated again)."""
+        return replace(self, **changes)  # type: ignore[arg-type]
+
+
+# The paper's agent alone: 60 greedy steps, no ICP.
+PAPER_V1 = RegistrationConfig()
+# The paper's PRANet-v2: the agent's 60 steps, then ICP.
+PAPER_V2 = RegistrationConfig(icp_stages=DEFAULT_ICP_STAGES)
+# The service's default request: v2 with exit checks after the coarse phase and halfway through the fine one,
+# and both rescues of an unconfident result.
+SERVICE_DEFAULT = PAPER_V2.with_(exit_checks=(20, 40), rescue_window=RESCUE_WINDOW, rescue_restarts=True)
+
+NAMED_CONFIGS: dict[str, RegistrationConfig] = {
+    "paper-v1": PAPER_V1,
+    "paper-v2": PAPER_V2,
+    "service-default": SERVICE_DEFAULT,
+}

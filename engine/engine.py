@@ -1,0 +1,74 @@
+"""``Engine``: the reward model and the ICP functions, built once, registering as a ``RegistrationConfig`` says.
+
+The one way every consumer registers: the service (built at start-up, one per worker), ``pranet-eval``,
+``pranet-bench`` and the scripts. Torch-free (onnxruntime and Open3D).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from pranet.core.pipeline import IcpFn, Registration, Scorer, register
+from pranet.core.registration_config import POINT_TO_POINT, SERVICE_DEFAULT, IcpStage, RegistrationConfig
+from pranet.engine.icp import make_icp
+
+IcpFactory = Callable[[tuple[IcpStage, ...]], IcpFn]
+
+
+class Engine:
+    """``scorer`` (a ``RewardModel``, or any ``core.pipeline.Scorer``) plus one ICP function per distinct list of
+    stages, made by ``icp_factory`` (Open3D's, by default) on first use and kept (each caches its last target's
+    preparation)."""
+
+    def __init__(self, scorer: Scorer, icp_factory: IcpFactory = make_icp) -> None:
+        self.scorer = scorer
+        self._icp_factory = icp_factory
+        self._icps: dict[tuple[IcpStage, ...], IcpFn] = {}
+        self._lock = threading.Lock()
+
+    @classmethod
+    def load(cls, model_dir: str | Path | None = None, threads: int = 2, precision: str = "fp32") -> Engine:
+        """The engine of a model directory (default: the shipped model)."""
+        from pranet.engine.runtime import RewardModel
+
+        return cls(RewardModel.load(model_dir, threads=threads, precision=precision))
+
+    def icp(self, stages: tuple[IcpStage, ...]) -> IcpFn:
+        """The ICP function running ``stages`` (built once per distinct stages)."""
+        with self._lock:
+            if stages not in self._icps:
+                self._icps[stages] = self._icp_factory(stages)
+            return self._icps[stages]
+
+    def warm_up(self, config: RegistrationConfig = SERVICE_DEFAULT) -> None:
+        """Build ``config``'s ICP functions now (imports Open3D) rather than in the first request."""
+        self._refinement(config)
+
+    def _refinement(self, config: RegistrationConfig) -> tuple[IcpFn | None, IcpFn | None]:
+        icp = self.icp(config.icp_stages) if config.refines else None
+        wide = None
+        if icp is not None and config.rescue_window is not None:
+            wide = self.icp(((POINT_TO_POINT, config.rescue_window),))
+        return icp, wide
+
+    def register(
+        self,
+        source: npt.ArrayLike,
+        target: npt.ArrayLike,
+        config: RegistrationConfig = SERVICE_DEFAULT,
+        rng: np.random.Generator | int = 0,
+        deadline: float | None = None,
+    ) -> Registration:
+        """Register ``source`` onto ``target`` (any common units): ``T_target_source``, target ≈ R @ source + t.
+
+        ``rng``: the generator of the resampling and the stochastic policies (or its seed); ``deadline``:
+        ``time.monotonic()`` seconds, past which the agent raises ``AgentTimeout``.
+        """
+        icp, wide = self._refinement(config)
+        generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        return register(source, target, self.scorer, generator, config, icp=icp, rescue_icp=wide, deadline=deadline)
