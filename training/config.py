@@ -109,7 +109,7 @@ PRESETS["agent"] = replace(
     PRESETS["cpu"],
     preset="agent",
     net=replace(PRESETS["cpu"].net, matching="sinkhorn", reward_head="analytic", match_passes=3),
-    optim=replace(PRESETS["cpu"].optim, reward_weight=0.0, pose_weight=1.0, epochs=10),
+    optim=replace(PRESETS["cpu"].optim, reward_weight=0.0, pose_weight=1.0, epochs=8),
     init="runs/cpu/best.pt",
 )
 
