@@ -124,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     from pranet.core.confidence import DEFAULT_THRESHOLD
     from pranet.engine.engine import Engine
     from pranet.training.data import data_dir, load_modelnet40, test_indices
-    from pranet.training.evaluate import nan_to_none, pranet_runner
+    from pranet.training.evaluate import pranet_runner
+    from pranet.training.reporting import nan_to_none
 
     settings = [s.strip() for s in args.settings.split(",") if s.strip()]
     data = load_modelnet40(data_dir(args.data_dir), "test")

@@ -104,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     from pranet.engine.engine import Engine
     from pranet.training import baselines
     from pranet.training.data import data_dir, load_modelnet40, test_indices
-    from pranet.training.evaluate import baseline_runner, evaluate, nan_to_none, pranet_runner
+    from pranet.training.evaluate import baseline_runner, evaluate, pranet_runner
+    from pranet.training.reporting import nan_to_none
 
     data = load_modelnet40(data_dir(args.data_dir), "test")
     idx = test_indices(data.labels)[: args.pairs]

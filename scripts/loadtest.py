@@ -9,12 +9,9 @@ count and the server's resident memory before and after (Linux /proc; workers in
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
-import signal
-import socket
-import subprocess
+import contextlib
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter
@@ -24,14 +21,9 @@ import httpx
 import numpy as np
 
 from pranet.core.wire import encode_cloud
+from pranet.training.bench.server import served, server_settings
 
 MAX_DURATION_S = 120.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def rss_mib(pid: int) -> float | None:
@@ -52,29 +44,6 @@ def rss_mib(pid: int) -> float | None:
             if p == pid:
                 return None
     return total_kib / 1024.0
-
-
-def start_server(workers: int, threads: int, env_extra: dict[str, str]) -> tuple[subprocess.Popen, str]:
-    port = free_port()
-    exe = Path(sys.executable).parent / "pranet-serve"
-    cmd = [str(exe) if exe.exists() else (shutil.which("pranet-serve") or "pranet-serve")]
-    cmd += ["--host", "127.0.0.1", "--port", str(port), "--workers", str(workers), "--threads", str(threads)]
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PRANET_")}
-    env.update({"PRANET_LOG_LEVEL": "warning", **env_extra})
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise SystemExit(f"pranet-serve exited with {proc.returncode}: {proc.stderr.read() if proc.stderr else ''}")
-        try:
-            if httpx.get(f"{url}/health", timeout=2).status_code == 200:
-                return proc, url
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    proc.kill()
-    raise SystemExit("pranet-serve did not come up in 120 s")
 
 
 def make_body(n_points: int, steps: list[int] | None, icp: bool, encoding: str, seed: int) -> bytes:
@@ -116,17 +85,22 @@ def main() -> int:
     args = p.parse_args()
     duration = min(max(args.duration, 1.0), MAX_DURATION_S)
 
-    proc = None
-    if args.url:
-        url, pid = args.url.rstrip("/"), args.pid
-    else:
-        extra = {}
-        if args.max_concurrency:
-            extra["PRANET_MAX_CONCURRENCY"] = str(args.max_concurrency)
-        if args.max_queue is not None:
-            extra["PRANET_MAX_QUEUE"] = str(args.max_queue)
-        proc, url = start_server(args.workers, args.threads, extra)
-        pid = proc.pid
+    with contextlib.ExitStack() as stack:
+        if args.url:
+            url, pid = args.url.rstrip("/"), args.pid
+        else:  # the benchmark's own server: pranet-serve on loopback, SIGTERM at the end
+            settings = server_settings(None, args.threads, args.workers, "fp32")
+            if args.max_concurrency:
+                settings["PRANET_MAX_CONCURRENCY"] = str(args.max_concurrency)
+            if args.max_queue is not None:
+                settings["PRANET_MAX_QUEUE"] = str(args.max_queue)
+            server = stack.enter_context(served(settings, Path(stack.enter_context(tempfile.TemporaryDirectory()))))
+            url, pid = server.url, server.pid
+        return load(args, url, pid, duration)
+
+
+def load(args: argparse.Namespace, url: str, pid: int | None, duration: float) -> int:
+    """``args.clients`` clients post the same body for ``duration`` seconds; prints the counts and latencies."""
     headers = {"content-type": "application/json"}
     if args.api_key:
         headers["Authorization"] = f"Bearer {args.api_key}"
@@ -136,43 +110,35 @@ def main() -> int:
     statuses: Counter = Counter()
     errors: Counter = Counter()
     lock = threading.Lock()
-    try:
-        with httpx.Client(base_url=url, headers=headers, timeout=60) as warm:  # first request pays lazy imports
-            warm.post("/register", content=body)
-        rss_before = rss_mib(pid) if pid else None
-        stop_at = time.monotonic() + duration
+    with httpx.Client(base_url=url, headers=headers, timeout=60) as warm:  # first request pays lazy imports
+        warm.post("/register", content=body)
+    rss_before = rss_mib(pid) if pid else None
+    stop_at = time.monotonic() + duration
 
-        def client() -> None:
-            with httpx.Client(base_url=url, headers=headers, timeout=60) as http:
-                while time.monotonic() < stop_at:
-                    t0 = time.perf_counter()
-                    try:
-                        status = http.post("/register", content=body).status_code
-                    except httpx.HTTPError as e:
-                        status = None
-                        with lock:
-                            errors[type(e).__name__] += 1
+    def client() -> None:
+        with httpx.Client(base_url=url, headers=headers, timeout=60) as http:
+            while time.monotonic() < stop_at:
+                t0 = time.perf_counter()
+                try:
+                    status = http.post("/register", content=body).status_code
+                except httpx.HTTPError as e:
+                    status = None
                     with lock:
-                        if status is not None:
-                            statuses[status] += 1
-                            if status == 200:
-                                latencies.append(time.perf_counter() - t0)
+                        errors[type(e).__name__] += 1
+                with lock:
+                    if status is not None:
+                        statuses[status] += 1
+                        if status == 200:
+                            latencies.append(time.perf_counter() - t0)
 
-        started = time.monotonic()
-        threads = [threading.Thread(target=client, daemon=True) for _ in range(args.clients)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(timeout=duration + 90)
-        elapsed = time.monotonic() - started
-        rss_after = rss_mib(pid) if pid else None
-    finally:
-        if proc is not None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+    started = time.monotonic()
+    threads = [threading.Thread(target=client, daemon=True) for _ in range(args.clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=duration + 90)
+    elapsed = time.monotonic() - started
+    rss_after = rss_mib(pid) if pid else None
 
     n = sum(statuses.values())
     failed = sum(c for s, c in statuses.items() if s != 200) + sum(errors.values())

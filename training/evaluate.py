@@ -24,7 +24,6 @@ import hashlib
 import json
 import math
 import os
-import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -37,6 +36,7 @@ import numpy as np
 from pranet.core.agent import POLICIES
 from pranet.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION, chamfer, evaluate_pair, isotropic_errors
 from pranet.core.se3 import Array, apply_transform
+from pranet.training.reporting import environment, json_default, nan_to_none
 from pranet.training.samples import SETTINGS, Pair, make_pair, pair_rng
 
 # pranet-adaptive: v2 with the service's exit checks and rescue (beyond the paper; core.pipeline.register)
@@ -359,53 +359,6 @@ def format_table(summary: dict[str, Any], paper: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def environment(threads: int) -> dict[str, Any]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    env: dict[str, Any] = {
-        "cpu_count": os.cpu_count(),
-        "threads": threads,
-        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "machine": platform.machine(),
-        "numpy": np.__version__,
-    }
-    for dist in ("pranet", "open3d-cpu", "open3d", "onnxruntime"):
-        try:
-            env[dist] = version(dist)
-        except PackageNotFoundError:
-            env[dist] = None
-    try:
-        import open3d
-
-        env["open3d_module"] = open3d.__version__
-    except ImportError:
-        env["open3d_module"] = None
-    return env
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def nan_to_none(o: Any) -> Any:
-    """``o`` with every non-finite float replaced by ``None`` (strict JSON)."""
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: nan_to_none(v) for k, v in o.items()}
-    if isinstance(o, list | tuple):
-        return [nan_to_none(v) for v in o]
-    return o
-
-
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         prog="pranet-eval",
@@ -557,7 +510,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "records": result["records"],
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(nan_to_none(doc), default=_json_default, indent=1))
+        args.json.write_text(json.dumps(nan_to_none(doc), default=json_default, indent=1))
         print(f"pranet-eval: wrote {args.json}", file=sys.stderr)
     return 0
 

@@ -1,0 +1,125 @@
+"""The methods: each maps (pair, pair seed) to (T_target_source, latency ms, extra)."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pranet.core.se3 import Array
+from pranet.training.bench.catalog import SMALL_GICP_DOWNSAMPLING
+from pranet.training.samples import Pair
+
+
+@dataclass
+class Outcome:
+    transform: Array
+    ms: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+MethodFn = Callable[[Pair, int], Outcome]
+
+
+def small_gicp_align(
+    source: Array, target: Array, max_distance: float = 0.5, threads: int = 1, max_iterations: int = 100
+) -> Array:
+    """GICP from the identity with small_gicp (covariances from 20 neighbours after a fine voxel grid)."""
+    import small_gicp
+
+    r = small_gicp.align(
+        np.ascontiguousarray(target, dtype=np.float64),
+        np.ascontiguousarray(source, dtype=np.float64),
+        registration_type="GICP",
+        downsampling_resolution=SMALL_GICP_DOWNSAMPLING,
+        max_correspondence_distance=max_distance,
+        num_threads=threads,
+        max_iterations=max_iterations,
+    )
+    return np.asarray(r.T_target_source, dtype=np.float64).copy()
+
+
+def pranet_method(engine: Any, config: Any) -> MethodFn:
+    """PRANet in-process through ``engine`` (``pranet.engine.Engine``) as ``config`` (a ``RegistrationConfig``)."""
+
+    def run(pair: Pair, seed: int) -> Outcome:
+        t0 = time.perf_counter()
+        reg = engine.register(pair.source, pair.target, config, np.random.default_rng(seed))
+        ms = (time.perf_counter() - t0) * 1e3
+        extra = {
+            "timing_ms": reg.timing_ms,
+            "n_steps": len(reg.trajectory),
+            "agent_transform": reg.agent_T_target_source,
+        }
+        if reg.agent is not None:  # steps after a translation: re-scored by head.onnx when the runtime reuses
+            moved = set(np.asarray(engine.scorer.table.translation_indices).tolist())
+            extra["after_translation"] = sum(a.action in moved for a in reg.agent.steps[:-1])
+        return Outcome(reg.T_target_source, ms, extra)
+
+    return run
+
+
+def refined_by(coarse: Callable[[Array, Array, np.random.Generator], Array], icp: Any):
+    """``coarse`` (a baseline without refinement) followed by PRANet's ICP (an ``IcpFn``, unit frame), as the
+    pipeline runs it: the classical peer with the same refinement as the service."""
+    from pranet.core.preprocess import fit_normalization
+
+    def fn(source: Array, target: Array, rng: np.random.Generator) -> Array:
+        T = coarse(source, target, rng)
+        norm = fit_normalization(source, target)
+        refined = icp(norm.to_unit(source), norm.to_unit(target), norm.transform_to_unit(T))
+        return norm.transform_to_world(refined.transform)
+
+    return fn
+
+
+def baseline_method(fn: Callable[[Array, Array, np.random.Generator], Array]) -> MethodFn:
+    def run(pair: Pair, seed: int) -> Outcome:
+        rng = np.random.default_rng(seed)
+        t0 = time.perf_counter()
+        T = fn(pair.source, pair.target, rng)
+        return Outcome(np.asarray(T, dtype=np.float64), (time.perf_counter() - t0) * 1e3)
+
+    return run
+
+
+def request_body(
+    pair: Pair, seed: int, icp: bool = True, steps: Sequence[int] | None = None, adaptive: bool = False
+) -> bytes:
+    """``adaptive``: the service's default exit checks and rescue; else every step, no rescue (the paper's v2)."""
+    from pranet.core.registration_config import SERVICE_DEFAULT
+    from pranet.core.wire import encode_cloud
+
+    body: dict[str, Any] = {
+        "source": encode_cloud(pair.source),
+        "target": encode_cloud(pair.target),
+        "icp": icp,
+        "seed": seed,
+        "return_trajectory": False,
+        "exit_checks": list(SERVICE_DEFAULT.exit_checks) if adaptive else [],
+        "rescue": adaptive,
+    }
+    if steps is not None:
+        body["steps"] = list(steps)
+    return json.dumps(body).encode()
+
+
+def http_method(client: Any, steps: Sequence[int] | None = None, adaptive: bool = False) -> MethodFn:
+    """``pranet-v2`` (or the adaptive variant) over HTTP; the latency is the client's: encoding, request, parsing."""
+
+    def run(pair: Pair, seed: int) -> Outcome:
+        t0 = time.perf_counter()
+        body = request_body(pair, seed, steps=steps, adaptive=adaptive)
+        r = client.post("/register", content=body, headers={"Content-Type": "application/json"})
+        if r.status_code != 200:
+            raise RuntimeError(f"HTTP {r.status_code}: {r.text[:300]}")
+        data = r.json()
+        ms = (time.perf_counter() - t0) * 1e3
+        extra = {"server_timing_ms": data["timing_ms"], "exit_checks": data.get("exit_checks", [])}
+        return Outcome(np.asarray(data["transform"], dtype=np.float64), ms, extra)
+
+    return run
