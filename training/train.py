@@ -15,8 +15,9 @@ import math
 import os
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,7 +29,7 @@ from pranet.core.knn import knn_indices
 from pranet.core.preprocess import resample
 from pranet.model.network import RewardNet
 from pranet.training.config import PRESETS, TrainConfig, parse_override
-from pranet.training.data import data_dir, load_modelnet40, split_train_val
+from pranet.training.data import Splits, data_dir, load_modelnet40, split_train_val
 from pranet.training.samples import StateDistribution, curriculum_states, training_state
 
 
@@ -229,12 +230,164 @@ def evaluate_loss(net: torch.nn.Module, batches: list[tuple[torch.Tensor, ...]],
     return total / max(count, 1)
 
 
+@dataclass
+class Run:
+    """What one training run holds between epochs (rank 0 writes the files)."""
+
+    cfg: TrainConfig
+    out: Path
+    rank: int
+    world: int
+    table: ActionTable
+    net: RewardNet
+    model: torch.nn.Module  # the net, or its DDP wrapper
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.LRScheduler
+    data_hash: str
+    start_epoch: int = 0
+    best: float = float("inf")
+    wall: float = 0.0
+
+
+def load_shapes(args: argparse.Namespace, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray, Splits, str]:
+    """``(train shapes, validation shapes, the split, the data fingerprint)`` of the seen categories."""
+    data = load_modelnet40(data_dir(args.data_dir), "train")
+    splits = split_train_val(data.labels, cfg.split_seed, cfg.val_fraction)
+    train_shapes = data.points[splits.train]
+    val_shapes = data.points[splits.val][: cfg.val_samples]
+    if args.limit:
+        train_shapes, val_shapes = train_shapes[: args.limit], val_shapes[: args.limit]
+    return train_shapes, val_shapes, splits, splits.fingerprint(data.files)
+
+
+def start_run(args: argparse.Namespace, cfg: TrainConfig, out: Path, rank: int, world: int, data_hash: str) -> Run:
+    """The network (warm-started when the config says), the optimiser and schedule; resumed from ``last.pt``."""
+    table = build_action_table(cfg.scales)
+    net = RewardNet(cfg.net, table)
+    if cfg.init and not args.resume:
+        warm_start(net, Path(cfg.init), rank)
+    model: torch.nn.Module = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
+    opt, sched = build_optimizer(net, cfg)
+    run = Run(cfg, out, rank, world, table, net, model, opt, sched, data_hash)
+    if args.resume and (out / "last.pt").exists():
+        resume(run)
+    elif (out / "last.pt").exists() and rank == 0:
+        print(f"note: {out}/last.pt exists; starting afresh (use --resume to continue)")
+    return run
+
+
+def resume(run: Run) -> None:
+    cfg, out = run.cfg, run.out
+    ck = torch.load(out / "last.pt", map_location="cpu", weights_only=False)
+    if not same_run(ck["config"], cfg.to_dict()):
+        sys.exit(f"--resume: {out}/last.pt was trained with a different config; use another --out")
+    run.net.load_state_dict(ck["model"])
+    run.opt.load_state_dict(ck["optimizer"])
+    run.sched.load_state_dict(ck["scheduler"])
+    if ck["config"]["optim"]["epochs"] != cfg.optim.epochs:
+        retarget_schedule(run.sched, cfg)
+        print(f"resume: schedule re-targeted from {ck['config']['optim']['epochs']} to {cfg.optim.epochs} epochs")
+    run.start_epoch, run.best, run.wall = ck["epoch"] + 1, ck["best_val"], ck["wall_s"]
+    if run.rank == 0:
+        print(f"resumed from epoch {ck['epoch']} (val {ck['val_loss']:.5f}, {run.wall / 60:.1f} min so far)")
+
+
+def write_run_files(run: Run, splits: Splits) -> None:
+    """``config.json`` and ``split.json`` (rank 0), and the header of ``log.csv`` for a new run."""
+    (run.out / "config.json").write_text(run.cfg.to_json())
+    split = {"seed": splits.seed, "train": splits.train.tolist(), "val": splits.val.tolist()}
+    (run.out / "split.json").write_text(json.dumps({**split, "data_sha256": run.data_hash}))
+    log_path = run.out / "log.csv"
+    if not log_path.exists():
+        log_path.write_text("epoch,train_loss,val_loss,lr,samples,epoch_s,wall_s\n")
+
+
+def train_epoch(run: Run, epoch: int, train_shapes: np.ndarray, args: argparse.Namespace) -> tuple[float, int, float]:
+    """One epoch of fresh random states (this rank's share of the shapes) -> ``(mean loss, samples, lr)``."""
+    cfg, s = run.cfg, run.cfg.sampling
+    comps = curriculum_states(epoch, cfg.optim.epochs, s.curriculum, s.full, s.small, s.curriculum_fraction)
+    states = StateDistribution(comps, s.rotation, s.orientation_max_deg)
+    order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_shapes))
+    mine = order[run.rank :: run.world]
+    ds = StateDataset(train_shapes[mine], cfg, run.table, states, (cfg.seed, epoch, run.rank))
+    loader = DataLoader(ds, batch_size=cfg.optim.batch_size, shuffle=False, num_workers=args.workers, drop_last=True)
+    it: Any = loader
+    if run.rank == 0 and not args.no_progress:
+        from tqdm import tqdm
+
+        it = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.optim.epochs}", leave=False, file=sys.stdout)
+    running, n = 0.0, 0
+    for batch in it:
+        loss, _ = batch_loss(run.model, batch, cfg)
+        size = len(batch[0])
+        run.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.optim.grad_clip:
+            torch.nn.utils.clip_grad_norm_(run.net.parameters(), cfg.optim.grad_clip)
+        run.opt.step()
+        running += float(loss.detach()) * size
+        n += size
+        if hasattr(it, "set_postfix"):
+            it.set_postfix(loss=f"{running / n:.4f}")
+    lr = run.opt.param_groups[0]["lr"]
+    run.sched.step()
+    return running / max(n, 1), n, lr
+
+
+def save_epoch(run: Run, epoch: int, val_loss: float, train_loss: float, n: int, lr: float, epoch_s: float) -> None:
+    """``last.pt`` (atomically), ``best.pt`` when the validation loss is the best so far, ``log.csv``."""
+    run.wall += epoch_s
+    run.best = min(run.best, val_loss)
+    ck = {
+        "epoch": epoch,
+        "model": run.net.state_dict(),
+        "optimizer": run.opt.state_dict(),
+        "scheduler": run.sched.state_dict(),
+        "config": run.cfg.to_dict(),
+        "val_loss": val_loss,
+        "best_val": run.best,
+        "wall_s": run.wall,
+        "samples": n * run.world,
+        "data_sha256": run.data_hash,
+        "action_fingerprint": run.table.fingerprint,
+    }
+    torch.save(ck, run.out / "last.pt.tmp")
+    os.replace(run.out / "last.pt.tmp", run.out / "last.pt")
+    if val_loss <= run.best:
+        torch.save(ck, run.out / "best.pt")
+    row = [
+        epoch,
+        f"{train_loss:.6f}",
+        f"{val_loss:.6f}",
+        f"{lr:.6g}",
+        n * run.world,
+        f"{epoch_s:.1f}",
+        f"{run.wall:.1f}",
+    ]
+    with open(run.out / "log.csv", "a", newline="") as f:
+        csv.writer(f).writerow([*row, f"{run.wall:.1f}"])
+
+
+def write_summary(run: Run) -> None:
+    summary = {
+        "preset": run.cfg.preset,
+        "epochs": run.cfg.optim.epochs,
+        "wall_s": run.wall,
+        "best_val_loss": run.best,
+        "data_sha256": run.data_hash,
+        "action_fingerprint": run.table.fingerprint,
+        "world_size": run.world,
+    }
+    (run.out / "summary.json").write_text(json.dumps(summary, indent=2))
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     cfg = resolve_config(args)
     if args.print_config:
         print(cfg.to_json())
         return 0
+    # 1. Processes, threads, output folder, seeds.
     rank, world = setup_distributed()
     threads = args.threads or cfg.threads
     if threads:
@@ -242,147 +395,40 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path("runs") / cfg.preset
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
-    table = build_action_table(cfg.scales)
-
-    root = data_dir(args.data_dir)
-    data = load_modelnet40(root, "train")
-    splits = split_train_val(data.labels, cfg.split_seed, cfg.val_fraction)
-    train_shapes = data.points[splits.train]
-    val_shapes = data.points[splits.val][: cfg.val_samples]
-    if args.limit:
-        train_shapes, val_shapes = train_shapes[: args.limit], val_shapes[: args.limit]
-
-    net = RewardNet(cfg.net, table)
-    if cfg.init and not args.resume:
-        warm_start(net, Path(cfg.init), rank)
-    model: torch.nn.Module = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
-    opt, sched = build_optimizer(net, cfg)
-    start_epoch, best, wall = 0, float("inf"), 0.0
-    if args.resume and (out / "last.pt").exists():
-        ck = torch.load(out / "last.pt", map_location="cpu", weights_only=False)
-        if not same_run(ck["config"], cfg.to_dict()):
-            sys.exit(f"--resume: {out}/last.pt was trained with a different config; use another --out")
-        net.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        sched.load_state_dict(ck["scheduler"])
-        if ck["config"]["optim"]["epochs"] != cfg.optim.epochs:
-            retarget_schedule(sched, cfg)
-            print(f"resume: schedule re-targeted from {ck['config']['optim']['epochs']} to {cfg.optim.epochs} epochs")
-        start_epoch, best, wall = ck["epoch"] + 1, ck["best_val"], ck["wall_s"]
-        if rank == 0:
-            print(f"resumed from epoch {ck['epoch']} (val {ck['val_loss']:.5f}, {wall / 60:.1f} min so far)")
-    elif (out / "last.pt").exists() and rank == 0:
-        print(f"note: {out}/last.pt exists; starting afresh (use --resume to continue)")
-
-    data_hash = splits.fingerprint(data.files)
-    if rank == 0:
-        (out / "config.json").write_text(cfg.to_json())
-        (out / "split.json").write_text(
-            json.dumps(
-                {
-                    "seed": splits.seed,
-                    "train": splits.train.tolist(),
-                    "val": splits.val.tolist(),
-                    "data_sha256": data_hash,
-                }
-            )
-        )
-    val = validation_set(val_shapes, cfg, table) if rank == 0 else []
+    # 2. Data, network, optimiser; resume.
+    train_shapes, val_shapes, splits, data_hash = load_shapes(args, cfg)
+    run = start_run(args, cfg, out, rank, world, data_hash)
     writer = None
     if rank == 0:
+        write_run_files(run, splits)
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(out / "tb"))
-    log_path = out / "log.csv"
-    if rank == 0 and not log_path.exists():
-        log_path.write_text("epoch,train_loss,val_loss,lr,samples,epoch_s,wall_s\n")
-
-    s = cfg.sampling
-    end_epoch = cfg.optim.epochs if args.stop_after is None else min(cfg.optim.epochs, start_epoch + args.stop_after)
-    for epoch in range(start_epoch, end_epoch):
+    val = validation_set(val_shapes, cfg, run.table) if rank == 0 else []
+    # 3. The epochs: train, validate, save, log.
+    end_epoch = (
+        cfg.optim.epochs if args.stop_after is None else min(cfg.optim.epochs, run.start_epoch + args.stop_after)
+    )
+    for epoch in range(run.start_epoch, end_epoch):
         t0 = time.time()
-        comps = curriculum_states(epoch, cfg.optim.epochs, s.curriculum, s.full, s.small, s.curriculum_fraction)
-        states = StateDistribution(comps, s.rotation, s.orientation_max_deg)
-        order = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_shapes))
-        mine = order[rank::world]
-        ds = StateDataset(train_shapes[mine], cfg, table, states, (cfg.seed, epoch, rank))
-        loader = DataLoader(
-            ds,
-            batch_size=cfg.optim.batch_size,
-            shuffle=False,
-            num_workers=args.workers,
-            drop_last=True,
-            persistent_workers=False,
-        )
-        it = loader
-        if rank == 0 and not args.no_progress:
-            from tqdm import tqdm
-
-            it = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.optim.epochs}", leave=False, file=sys.stdout)
-        running, n = 0.0, 0
-        for batch in it:
-            loss, _ = batch_loss(model, batch, cfg)
-            size = len(batch[0])
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if cfg.optim.grad_clip:
-                torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.optim.grad_clip)
-            opt.step()
-            running += float(loss.detach()) * size
-            n += size
-            if rank == 0 and not args.no_progress and hasattr(it, "set_postfix"):
-                it.set_postfix(loss=f"{running / n:.4f}")
-        lr = opt.param_groups[0]["lr"]
-        sched.step()
+        train_loss, n, lr = train_epoch(run, epoch, train_shapes, args)
         if rank != 0:
             continue
-        val_loss = evaluate_loss(net, val, cfg)
+        val_loss = evaluate_loss(run.net, val, cfg)
         epoch_s = time.time() - t0
-        wall += epoch_s
-        train_loss = running / max(n, 1)
-        best = min(best, val_loss)
-        ck = {
-            "epoch": epoch,
-            "model": net.state_dict(),
-            "optimizer": opt.state_dict(),
-            "scheduler": sched.state_dict(),
-            "config": cfg.to_dict(),
-            "val_loss": val_loss,
-            "best_val": best,
-            "wall_s": wall,
-            "samples": n * world,
-            "data_sha256": data_hash,
-            "action_fingerprint": table.fingerprint,
-        }
-        torch.save(ck, out / "last.pt.tmp")
-        os.replace(out / "last.pt.tmp", out / "last.pt")
-        if val_loss <= best:
-            torch.save(ck, out / "best.pt")
-        with open(log_path, "a", newline="") as f:
-            csv.writer(f).writerow(
-                [epoch, f"{train_loss:.6f}", f"{val_loss:.6f}", f"{lr:.6g}", n * world, f"{epoch_s:.1f}", f"{wall:.1f}"]
-            )
+        save_epoch(run, epoch, val_loss, train_loss, n, lr, epoch_s)
         if writer is not None:
-            writer.add_scalar("loss/train", train_loss, epoch)
-            writer.add_scalar("loss/val", val_loss, epoch)
-            writer.add_scalar("lr", lr, epoch)
+            for tag, value in (("loss/train", train_loss), ("loss/val", val_loss), ("lr", lr)):
+                writer.add_scalar(tag, value, epoch)
             writer.flush()
         print(
             f"epoch {epoch + 1}/{cfg.optim.epochs} train {train_loss:.5f} val {val_loss:.5f} "
             f"lr {lr:.3g} {epoch_s:.0f}s",
             flush=True,
         )
+    # 4. The summary, once the planned epochs are done.
     if rank == 0 and end_epoch == cfg.optim.epochs:
-        summary = {
-            "preset": cfg.preset,
-            "epochs": cfg.optim.epochs,
-            "wall_s": wall,
-            "best_val_loss": best,
-            "data_sha256": data_hash,
-            "action_fingerprint": table.fingerprint,
-            "world_size": world,
-        }
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        write_summary(run)
     if world > 1:
         dist.destroy_process_group()
     return 0
