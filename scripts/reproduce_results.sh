@@ -6,6 +6,9 @@
 #
 #   bash scripts/reproduce_results.sh            # about 40-60 minutes on 2 cores
 #   LIMIT=50 POLICY_PAIRS=50 CONF_PAIRS=30 GLOBAL_PAIRS=5 bash scripts/reproduce_results.sh   # a quick pass
+#   BASELINES_FROM=results/baselines bash scripts/reproduce_results.sh   # a new model: PRANet rows only, the
+#       classical rows (model-independent, same pairs) merged from that folder's eval-*.json.gz; Table 4's
+#       latencies then come from two runs
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 BIN=.venv/bin
@@ -16,9 +19,11 @@ MODEL_ARGS=()
 [[ -n "${MODEL:-}" ]] && MODEL_ARGS=(--model "$MODEL")
 mkdir -p results/ablation-policy
 
+METHODS="pranet-v1,pranet-v2,pranet-adaptive"
+[[ -z "${BASELINES_FROM:-}" ]] && METHODS="$METHODS,icp,fgr,ransac"
 table() {  # one setting: Tables 1-3 rows, Table 4 latencies, Fig. 5
     local s=$1
-    "$BIN/pranet-eval" --setting "$s" --methods pranet-v1,pranet-v2,pranet-adaptive,icp,fgr,ransac --threads 1 \
+    "$BIN/pranet-eval" --setting "$s" --methods "$METHODS" --threads 1 \
         "${LIMIT_ARGS[@]}" "${MODEL_ARGS[@]}" --json "results/eval-$s.json" --plot "results/fig5-$s.png" --quiet \
         > "results/eval-$s.txt"
     gzip -f "results/eval-$s.json"
@@ -30,7 +35,11 @@ for s in partial noisy clean; do  # the slowest first
     while (($(jobs -rp | wc -l) >= JOBS)); do sleep 5; done
 done
 for p in "${pids[@]}"; do wait "$p"; done
-"$BIN/python" scripts/results_tables.py --markdown results/eval-{clean,noisy,partial}.json.gz > results/tables.md
+BASELINE_FILES=()
+[[ -n "${BASELINES_FROM:-}" ]] && BASELINE_FILES=("$BASELINES_FROM"/eval-{clean,noisy,partial}.json.gz)
+# Later files win a method's row: the classical rows first, this run's after.
+"$BIN/python" scripts/results_tables.py --markdown "${BASELINE_FILES[@]}" results/eval-{clean,noisy,partial}.json.gz \
+    > results/tables.md
 
 for policy in deterministic stoch1 stoch2; do  # Table 8: no retraining
     "$BIN/pranet-eval" --setting clean --limit "${POLICY_PAIRS:-300}" --methods pranet-v1 --policy "$policy" \
