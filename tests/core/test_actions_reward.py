@@ -136,3 +136,31 @@ def test_normalised_rewards_at_a_known_state_computed_by_hand():
     expected = np.where(coarse, raw / np.linalg.norm(raw[coarse]), raw / np.linalg.norm(raw[~coarse]))
     np.testing.assert_allclose(true_rewards(R.as_matrix(), t, table), expected, atol=1e-12)
     np.testing.assert_allclose(true_rewards(R.as_matrix(), t, table, normalize=False), raw, atol=1e-12)
+
+
+def test_se3_distance_is_translation_norm_plus_angle_per_row():
+    """Eq. 1's D(T, 1), batched: each row's |t| plus its rotation angle (scipy's magnitude)."""
+    from pranet.core.reward import se3_distance
+
+    R = Rotation.random(5, random_state=3)
+    t = np.random.default_rng(4).normal(size=(5, 3))
+    expected = np.linalg.norm(t, axis=1) + R.magnitude()
+    np.testing.assert_allclose(se3_distance(R.as_matrix(), t), expected, atol=1e-12)
+    assert se3_distance(np.eye(3), [0.3, 0.4, 0.0]) == pytest.approx(0.5)
+
+
+def test_l2_point_rewards_match_brute_force():
+    """kind="l2": the mean distance of the points to their true positions, before minus after each action."""
+    table = build_action_table()
+    rng = np.random.default_rng(6)
+    P = rng.standard_normal((80, 3)) * 0.3
+    R_err = Rotation.from_rotvec([0.3, -0.1, 0.2]).as_matrix()
+    t_err = np.array([0.1, -0.05, 0.2])
+    truth = P @ R_err.T + t_err
+
+    def l2(points):
+        return np.sqrt(((points - truth) ** 2).sum(axis=1)).mean()
+
+    moved = [P @ table.rotations[a].T + table.translations[a] for a in range(len(table))]
+    expected = np.array([l2(P) - l2(m) for m in moved])
+    np.testing.assert_allclose(point_rewards(P, R_err, t_err, table, kind="l2", normalize=False), expected, atol=1e-12)
