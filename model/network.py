@@ -175,9 +175,9 @@ def horn_rotation(H: Tensor, squarings: int = 24) -> Tensor:
     M = N + (N.flatten(1).norm(dim=1).view(-1, 1, 1) + 1e-12) * eye4
     for _ in range(squarings):
         M = M @ M
-        M = M / (M.diagonal(dim1=1, dim2=2).sum(-1).view(-1, 1, 1) + 1e-30)
+        M = M / ((M * eye4).sum(dim=(1, 2)).view(-1, 1, 1) + 1e-30)  # ÷ trace (diagonal() exports to If nodes)
     # M ≈ q qᵀ: its column with the largest diagonal entry is q_i q, well away from zero.
-    i = M.diagonal(dim1=1, dim2=2).argmax(dim=-1)  # (B,)
+    i = (M * eye4).sum(dim=-1).argmax(dim=-1)  # (B,)
     col = torch.gather(M, 2, i.view(-1, 1, 1).expand(-1, 4, 1)).squeeze(-1)  # (B, 4)
     w, x, y, z = (col / (col.norm(dim=-1, keepdim=True) + 1e-12)).unbind(-1)
     return torch.stack(
@@ -190,18 +190,26 @@ def horn_rotation(H: Tensor, squarings: int = 24) -> Tensor:
     )
 
 
+def logsumexp(x: Tensor, dim: int) -> Tensor:
+    """``log Σ exp(x)`` along ``dim`` (kept), stabilised by the maximum. Written out because onnxruntime's
+    ``ReduceLogSumExp`` kernel is several times slower on the CPU than these five element-wise ops."""
+    m = x.amax(dim=dim, keepdim=True).detach()
+    return m + (x - m).exp().sum(dim=dim, keepdim=True).log()
+
+
 def sinkhorn_with_slack(logits: Tensor, iterations: int) -> Tensor:
     """Soft assignment ``(B, N, M)`` from ``logits: (B, N, M)`` (RPMNet, Eq. 7), in the log domain.
 
     A slack row and column with logit 0 absorb the points that have no counterpart: rows are
-    normalised over the target points and the slack, columns over the source points and the slack.
+    normalised over the target points and the slack, columns over the source points and the slack. The slack
+    row and column themselves are left as they are (masks, rather than slicing and concatenating the matrix).
     """
     padded = nn.functional.pad(logits, (0, 1, 0, 1), value=0.0)  # (B, N+1, M+1)
+    real_rows = nn.functional.pad(torch.ones_like(logits[:, :, :1]), (0, 0, 0, 1))  # (B, N+1, 1): 0 on the slack
+    real_cols = nn.functional.pad(torch.ones_like(logits[:, :1, :]), (0, 1, 0, 0))  # (B, 1, M+1)
     for _ in range(iterations):
-        rows = padded[:, :-1] - torch.logsumexp(padded[:, :-1], dim=2, keepdim=True)
-        padded = torch.cat([rows, padded[:, -1:]], dim=1)
-        cols = padded[:, :, :-1] - torch.logsumexp(padded[:, :, :-1], dim=1, keepdim=True)
-        padded = torch.cat([cols, padded[:, :, -1:]], dim=2)
+        padded = padded - real_rows * logsumexp(padded, dim=2)
+        padded = padded - real_cols * logsumexp(padded, dim=1)
     return padded[:, :-1, :-1].exp()
 
 
@@ -285,7 +293,7 @@ class AnalyticRewards(nn.Module):
         return torch.acos(((trace - 1.0) / 2.0).clamp(-1.0 + 1e-7, 1.0 - 1e-7))
 
     def forward(self, R: Tensor, t: Tensor) -> Tensor:
-        rot_before = self._angle(R.diagonal(dim1=1, dim2=2).sum(-1))  # (B,)
+        rot_before = self._angle((R * torch.eye(3, dtype=R.dtype, device=R.device)).sum(dim=(1, 2)))  # (B,): trace
         rot_after = self._angle(torch.einsum("bij,aij->ba", R, self.rotations))  # (B, A)
         trans_before = t.norm(dim=-1)  # (B,)
         trans_after = (t.unsqueeze(1) - self.translations.unsqueeze(0)).norm(dim=-1)  # (B, A)
