@@ -275,7 +275,7 @@ class AnalyticRewards(nn.Module):
     """The rewards of every action from a residual pose, in closed form (``core.reward.true_rewards``).
 
     ``R: (B, 3, 3)`` still to apply about the source centroid, ``t: (B, 3)`` still to add to it ->
-    ``(B, A)`` normalised per step-size scale. ``angle(R R_aᵀ) = arccos((Σ_ij R_ij (R_a)_ij - 1) / 2)``.
+    ``(B, A)`` normalised per step-size scale.
     """
 
     def __init__(self, table: ActionTable) -> None:
@@ -288,13 +288,20 @@ class AnalyticRewards(nn.Module):
         self.register_buffer("scale_masks", masks, persistent=False)
 
     @staticmethod
-    def _angle(trace: Tensor) -> Tensor:
-        # Clamped inside (-1, 1): arccos' derivative is infinite at the ends.
-        return torch.acos(((trace - 1.0) / 2.0).clamp(-1.0 + 1e-7, 1.0 - 1e-7))
+    def _angle(R: Tensor) -> Tensor:
+        """The rotation angle of ``R: (..., 3, 3)`` as ``2 atan(sin θ / (1 + cos θ))``, with ``sin θ`` from the
+        antisymmetric part. A fine rotation reward is the difference of two angles 0.5° apart; ``arccos`` of the
+        trace resolves small angles to ``1e-7 / sin θ`` in float32 (1e-4 of the reward), this to ``1e-7 θ``."""
+        cos = (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1.0) / 2.0
+        vx = R[..., 2, 1] - R[..., 1, 2]
+        vy = R[..., 0, 2] - R[..., 2, 0]
+        vz = R[..., 1, 0] - R[..., 0, 1]
+        sin = (vx * vx + vy * vy + vz * vz + 1e-30).sqrt() / 2.0
+        return 2.0 * torch.atan(sin / (1.0 + cos).clamp(min=1e-12))
 
     def forward(self, R: Tensor, t: Tensor) -> Tensor:
-        rot_before = self._angle((R * torch.eye(3, dtype=R.dtype, device=R.device)).sum(dim=(1, 2)))  # (B,): trace
-        rot_after = self._angle(torch.einsum("bij,aij->ba", R, self.rotations))  # (B, A)
+        rot_before = self._angle(R)  # (B,)
+        rot_after = self._angle(torch.einsum("bij,akj->baik", R, self.rotations))  # (B, A): angle(R R_aᵀ)
         trans_before = t.norm(dim=-1)  # (B,)
         trans_after = (t.unsqueeze(1) - self.translations.unsqueeze(0)).norm(dim=-1)  # (B, A)
         rewards = torch.where(

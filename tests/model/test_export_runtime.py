@@ -15,11 +15,19 @@ from pranet.model.export import export_model  # noqa: E402
 from pranet.model.network import RewardNet  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory):
+NETS = {
+    "mlp heads (1.x)": NetConfig(n_points=128, pool="maxmean", correspondence=True),
+    "analytic rewards (2.x)": NetConfig(
+        n_points=128, pool="maxmean", correspondence=True, matching="sinkhorn", reward_head="analytic", match_passes=3
+    ),
+}
+
+
+@pytest.fixture(scope="module", params=list(NETS))
+def exported(request, tmp_path_factory):
     torch.manual_seed(0)
     table = build_action_table()
-    cfg = NetConfig(n_points=128, pool="maxmean", correspondence=True)
+    cfg = NETS[request.param]
     net = RewardNet(cfg, table).eval()
     out = tmp_path_factory.mktemp("model")
     card = {

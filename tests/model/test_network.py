@@ -152,7 +152,7 @@ def test_analytic_rewards_equal_the_numpy_labels():
     R = Rotation.from_rotvec(axes * np.deg2rad(rng.uniform(0.3, 90.0, 32))[:, None]).as_matrix()
     t = rng.normal(0.0, 0.2, (32, 3))
     got = AnalyticRewards(table)(torch.from_numpy(R).float(), torch.from_numpy(t).float()).numpy()
-    np.testing.assert_allclose(got, true_rewards(R, t, table), atol=5e-4)
+    np.testing.assert_allclose(got, true_rewards(R, t, table), atol=2e-5)
 
 
 def test_sinkhorn_with_slack_is_doubly_stochastic_and_drops_unmatched_points():
