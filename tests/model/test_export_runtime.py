@@ -14,7 +14,6 @@ from pranet.model.config import NetConfig  # noqa: E402
 from pranet.model.export import export_model  # noqa: E402
 from pranet.model.network import RewardNet  # noqa: E402
 
-
 NETS = {
     "mlp heads (1.x)": NetConfig(n_points=128, pool="maxmean", correspondence=True),
     "analytic rewards (2.x)": NetConfig(
