@@ -1,8 +1,9 @@
 """Compare reward-network candidates on the validation shapes (seen categories, held out from training).
 
 For each checkpoint (exported to a temporary ONNX directory) or model directory: PRANet-v1 (the agent
-alone, 60 steps) and PRANet-v2 (+ the service's ICP stages) on ``--pairs`` pairs per setting, through
-``core.pipeline.register`` as the service runs them. Backs docs/DESIGN.md, "The agent (model 2.0.0)".
+alone, 60 steps), PRANet-v2 (+ the service's ICP stages) and the service's default (``SERVICE_DEFAULT``) on
+``--pairs`` pairs per setting, through the engine as the service runs them. Backs docs/DESIGN.md, "The agent
+(model 2.0.0)".
 
     python experiments/agent_probe.py runs/cpu/best.pt runs/probe-a/last.pt --pairs 40
 """
@@ -33,10 +34,10 @@ def load_engine(path: Path, tmp: Path):
 
 def probe(engine, shapes: np.ndarray, setting: str, pairs: int) -> dict[str, float]:
     from pranet.core.metrics import isotropic_errors
-    from pranet.core.registration_config import PAPER_V2
+    from pranet.core.registration_config import PAPER_V2, SERVICE_DEFAULT
     from pranet.training.samples import make_pair, pair_rng
 
-    v1, v2, ok, ms = [], [], [], []
+    v1, v2, ok, ms, service_ok, service_ms = [], [], [], [], [], []
     for i in range(pairs):
         rng = pair_rng(99, setting, i)
         pair = make_pair(shapes[i % len(shapes)], setting, rng)
@@ -48,12 +49,19 @@ def probe(engine, shapes: np.ndarray, setting: str, pairs: int) -> dict[str, flo
         v1.append(r1)
         v2.append(r2)
         ok.append(r2 < 1.0 and t2 < 0.01)
+        t0 = time.perf_counter()
+        service = engine.register(pair.source, pair.target, SERVICE_DEFAULT, pair_rng(99, setting, i))
+        service_ms.append((time.perf_counter() - t0) * 1e3)
+        r3, t3 = isotropic_errors(service.T_target_source, pair.T_gt)
+        service_ok.append(r3 < 1.0 and t3 < 0.01)
     return {
         "v1_mean": float(np.mean(v1)),
         "v1_median": float(np.median(v1)),
         "v2_mean": float(np.mean(v2)),
         "v2_success": float(np.mean(ok)),
         "ms_median": float(np.median(ms)),
+        "service_success": float(np.mean(service_ok)),
+        "service_ms_median": float(np.median(service_ms)),
     }
 
 
@@ -80,7 +88,8 @@ def main() -> None:
                 print(
                     f"{str(path):40s} {setting:8s} v1 mean {row['v1_mean']:6.2f}° median {row['v1_median']:6.2f}°"
                     f"  v2 mean {row['v2_mean']:6.2f}° success {100 * row['v2_success']:5.1f} %"
-                    f"  {row['ms_median']:6.0f} ms",
+                    f"  {row['ms_median']:6.0f} ms; service default {100 * row['service_success']:5.1f} %"
+                    f" {row['service_ms_median']:6.0f} ms",
                     flush=True,
                 )
     if args.json:
