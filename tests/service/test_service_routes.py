@@ -272,3 +272,20 @@ def test_rescue_recovers_what_a_narrow_icp_misses(http: httpx.Client) -> None:
     assert rescued["rescued"] == "wide_icp" and rescued["status"] == "converged"
     assert rotation_error_deg(np.array(rescued["rotation"]), R) < 0.05
     assert_allclose(rescued["translation"], t, atol=1e-3)
+
+
+def test_timings_are_milliseconds_that_add_up(http: httpx.Client) -> None:
+    """timing_ms is in milliseconds: the server's total lies within what the client waited, every stage is >= 0,
+    and the stages between decoding and the response account for the total."""
+    import time
+
+    source, target, _ = synthetic_pair(n=400)
+    t0 = time.perf_counter()
+    r = http.post("/register", json={"source": b64(source), "target": b64(target)})
+    client_ms = (time.perf_counter() - t0) * 1e3
+    t = r.json()["timing_ms"]
+    assert all(v >= 0.0 for v in t.values()), t
+    assert 1.0 < t["total"] <= client_ms, (t, client_ms)
+    stages = ("decode", "preprocess", "target_embedding", "agent_steps", "icp", "confidence", "rescue")
+    assert sum(t[k] for k in stages) == pytest.approx(t["total"], rel=0.1, abs=2.0), t
+    assert t["queue"] < client_ms

@@ -275,3 +275,12 @@ def test_missing_clouds(http: httpx.Client) -> None:
 def test_wrong_method(http: httpx.Client) -> None:
     assert http.get("/register").status_code == 405
     assert http.post("/health").status_code == 405
+
+
+def test_far_too_many_encoded_points_are_refused_before_decoding(http: httpx.Client) -> None:
+    """The base64 length alone bounds the points: far over the limit, the cloud is not even decoded (the message
+    has no count, which only decoding gives)."""
+    many = np.random.default_rng(1).normal(size=(MAX_POINTS + 5000, 3))
+    r = http.post("/register", json={"source": b64(many[:100]), "target": b64(many)})
+    assert r.status_code == 413
+    assert _messages(r) == f"target: more than the server's limit of {MAX_POINTS} points"
