@@ -5,10 +5,11 @@ refine -> rescue -> back to world units.
 PRANet-v1 (no ICP), PRANet-v2 (+ ICP), or the service's default (exit checks and rescues). The reward model and
 the ICP functions are injected (``pranet.engine`` builds them from the config), so this module stays numpy-only.
 
-``init="identity"`` (the paper's setting) runs the agent once from the input pose. ``init="global"`` runs it
-from ``n_starts`` well-spread start rotations at once (``core.starts``; one batched score call per step), ranks
-the results by their confidence and refines the ``refine_top`` best: for initial rotations beyond the 60° the
-model was trained on. Every result carries a ``Confidence`` (``core.confidence``), computed in the unit frame.
+``init="identity"`` (the paper's setting) runs the agent once from the input pose. ``init="global"`` runs its
+coarse phase from ``n_starts`` well-spread start rotations at once (``core.starts``; one batched score call per
+step), the fine phase from the ``refine_top`` most confident, and refines those with ICP: for initial rotations
+beyond the 60° the model was trained on. Every result carries a ``Confidence`` (``core.confidence``),
+computed in the unit frame.
 
 Beyond the paper, with ICP (identity mode): exit checks refine the agent's estimate after some steps and return
 as soon as the refined result is confident (most pairs need only the coarse phase: ``docs/PERFORMANCE.md``).
@@ -169,8 +170,7 @@ def run_agents(
     when ICP is on and the config has them, or from every global start at once."""
     if config.init == "global":
         starts = start_transforms(start_rotations(config.n_starts), p.src_n.mean(axis=0), p.tgt_unit.mean(axis=0))
-        agents = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, starts, schedule, **loop)
-        return _AgentRuns(starts, agents, [], [], [0.0, 0.0])
+        return _AgentRuns(starts, run_global(p, scorer, score_fn, config, schedule, loop, starts), [], [], [0.0, 0.0])
     starts = np.eye(4)[None]  # (1, 4, 4)
     if icp is None or not config.exit_checks:
         return _AgentRuns(
@@ -201,14 +201,47 @@ def run_agents(
     return runs
 
 
+def run_global(
+    p: _Prepared,
+    scorer: Scorer,
+    score_fn: ScoreFn | BatchScoreFn,
+    config: RegistrationConfig,
+    schedule: Sequence[int],
+    loop: dict,
+    starts: Array,
+) -> list[AgentResult]:
+    """Global mode: the coarse phase from every start at once (batched), then the rest of the schedule from the
+    ``refine_top`` most confident only: the fine phase polishes, it does not decide which start wins, and each
+    start costs a score call per step. The others keep their coarse-phase result."""
+    segments = split_schedule(schedule, (schedule[0],))
+    agents = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, starts, segments[0], **loop)
+    if len(segments) == 1:
+        return agents
+    order = np.argsort(-np.asarray(quick_scores(p, agents, config.threshold)), kind="stable")
+    keep = [int(b) for b in order[: config.refine_top]]
+    pose = np.stack([agents[b].transform for b in keep])
+    more = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, pose, segments[1], **loop)
+    for b, part in zip(keep, more, strict=True):
+        n = len(agents[b].steps)
+        agents[b].steps += [replace(s, step=s.step + n) for s in part.steps]
+        agents[b].stopped_early += [i + n for i in part.stopped_early]
+        agents[b].transform = part.transform
+    return agents
+
+
+def quick_scores(p: _Prepared, agents: Sequence[AgentResult], threshold: float) -> list[float]:
+    """A quick confidence of each agent's result (subsampled clouds): to rank starts before refining them."""
+    ranker = ConfidenceEstimator(p.tgt_unit, max_target=RANK_TARGET, threshold=threshold)
+    return [ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
+
+
 def rank_starts(
     p: _Prepared, agents: Sequence[AgentResult], config: RegistrationConfig, refining: bool
 ) -> tuple[list[int], list[float]]:
     """Global mode: the agents' results ranked by a quick confidence -> (the ones to refine, every start's score)."""
     if config.init != "global":
         return [0], []
-    ranker = ConfidenceEstimator(p.tgt_unit, max_target=RANK_TARGET, threshold=config.threshold)
-    scores = [ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
+    scores = quick_scores(p, agents, config.threshold)
     order = np.argsort(-np.asarray(scores), kind="stable")
     return [int(b) for b in order[: config.refine_top if refining else 1]], scores
 
@@ -263,8 +296,7 @@ def rescue(
         coarse = (schedule[0],) + (0,) * (len(schedule) - 1)
         batch = batch_score_fn(scorer, p.tgt_n)
         more = run_agent_batch(p.src_n, p.tgt_n, batch, scorer.table, restarts, coarse, **loop)
-        ranker = ConfidenceEstimator(p.tgt_unit, max_target=RANK_TARGET, threshold=config.threshold)
-        quick = [ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in more]
+        quick = quick_scores(p, more, config.threshold)
         for k in np.argsort(-np.asarray(quick), kind="stable")[: config.refine_top]:
             refined = icp(p.src_unit, p.tgt_unit, more[k].transform)
             index = len(runs.agents) + int(k)
