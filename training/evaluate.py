@@ -126,6 +126,7 @@ def pranet_runner(
 ) -> Runner:
     """PRANet through ``engine`` (``pranet.engine.Engine``): v1 and v2 from one ``PAPER_V2`` registration (its
     agent-only and refined poses), the adaptive variant as the service's default (``SERVICE_DEFAULT``)."""
+    from pranet.core.confidence import estimate_confidence
     from pranet.core.registration_config import PAPER_V1, PAPER_V2, SERVICE_DEFAULT
 
     options = {"policy": policy, "early_stop": early_stop}
@@ -160,9 +161,12 @@ def pranet_runner(
         if reg.agent is not None and reg.agent.stopped_early:
             extra["stopped_early"] = list(reg.agent.stopped_early)
         if "pranet-v1" in methods:
-            v1_extra = (
-                extra if want_v2 else {**extra, "confidence": reg.confidence.score, "status": reg.confidence.status}
-            )
+            agent_conf = reg.confidence  # the run's own when it has no ICP; else the agent's result scored here
+            if want_v2:
+                norm = reg.normalization
+                T_agent = norm.transform_to_unit(reg.agent_T_target_source)
+                agent_conf = estimate_confidence(norm.to_unit(pair.source), norm.to_unit(pair.target), T_agent)
+            v1_extra = {**extra, "confidence": agent_conf.score, "status": agent_conf.status}
             out["pranet-v1"] = MethodOutput(reg.agent_T_target_source, v1_ms, traj, v1_extra)
         if want_v2:
             assert reg.icp is not None

@@ -88,6 +88,11 @@ def test_oracle_agent_through_the_pranet_runner(shapes):
     va = ev.evaluate_pair(pair.source, pair.target, pair.clean_source, adaptive.transform, pair.T_gt)
     assert va.rotation_deg < 0.01 and va.translation < 1e-4 and not adaptive.extra["rescued"]
     assert out["pranet-v2"].ms >= out["pranet-v1"].ms  # v2 is timed as agent + ICP
+    # v1 carries the confidence of the agent's own result (the flag measured on PRANet-v1 in RESULTS.md).
+    assert 0.0 <= out["pranet-v1"].extra["confidence"] <= 1.0 and out["pranet-v1"].extra["status"] in (
+        "converged",
+        "suspect",
+    )
     v1 = ev.evaluate_pair(pair.source, pair.target, pair.clean_source, out["pranet-v1"].transform, pair.T_gt)
     v2 = ev.evaluate_pair(pair.source, pair.target, pair.clean_source, out["pranet-v2"].transform, pair.T_gt)
     assert v1.rotation_deg < 1.0 and v1.translation < 0.02
