@@ -109,15 +109,16 @@ def main(argv: list[str] | None = None) -> int:
 
     data = load_modelnet40(data_dir(args.data_dir), "test")
     idx = test_indices(data.labels)[: args.pairs]
-    model = Engine.load(args.model, threads=args.threads)
-    n_scales = len(model.scorer.schedule)
+    engine = Engine.load(args.model, threads=args.threads)
+    model = engine.scorer
+    n_scales = len(model.schedule)
     runners = []
     if "pranet-global" in methods:
-        runners.append(global_runner(model, "pranet-global", args.starts, args.refine_top, None))
+        runners.append(global_runner(engine, "pranet-global", args.starts, args.refine_top, None))
     if "starts-icp" in methods:
-        runners.append(global_runner(model, "starts-icp", args.starts, args.refine_top, (0,) * n_scales))
+        runners.append(global_runner(engine, "starts-icp", args.starts, args.refine_top, (0,) * n_scales))
     if "pranet-v2" in methods:
-        runners.append(pranet_runner(model, ("pranet-v2",)))
+        runners.append(pranet_runner(engine, ("pranet-v2",)))
     if "ransac" in methods:
         runners.append(baseline_runner("ransac", baselines.ransac_icp))
     if "fgr" in methods:
