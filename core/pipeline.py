@@ -181,10 +181,7 @@ def run_agents(
     segments = split_schedule(schedule, config.exit_checks)
     for k, segment in enumerate(segments):
         part = run_agent(p.src_n, p.tgt_n, score_fn, scorer.table, segment, initial_transform=agent.transform, **loop)
-        n = len(agent.steps)
-        agent.steps += [replace(s, step=s.step + n) for s in part.steps]
-        agent.stopped_early += [i + n for i in part.stopped_early]
-        agent.transform = part.transform
+        extend(agent, part)
         if k == len(segments) - 1:
             break
         # The exit check: refine now and stop if confident.
@@ -222,11 +219,16 @@ def run_global(
     pose = np.stack([agents[b].transform for b in keep])
     more = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, pose, segments[1], **loop)
     for b, part in zip(keep, more, strict=True):
-        n = len(agents[b].steps)
-        agents[b].steps += [replace(s, step=s.step + n) for s in part.steps]
-        agents[b].stopped_early += [i + n for i in part.stopped_early]
-        agents[b].transform = part.transform
+        extend(agents[b], part)
     return agents
+
+
+def extend(agent: AgentResult, part: AgentResult) -> None:
+    """Append ``part``, run from where ``agent`` ended, to ``agent`` (steps numbered on)."""
+    n = len(agent.steps)
+    agent.steps += [replace(s, step=s.step + n) for s in part.steps]
+    agent.stopped_early += [i + n for i in part.stopped_early]
+    agent.transform = part.transform
 
 
 def quick_scores(p: _Prepared, agents: Sequence[AgentResult], threshold: float) -> list[float]:
