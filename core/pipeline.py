@@ -22,6 +22,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
@@ -135,6 +136,11 @@ class _Prepared:
     src_n: Array  # (N, 3)
     tgt_n: Array  # (N, 3)
 
+    @cached_property
+    def ranker(self) -> ConfidenceEstimator:
+        """The quick confidence (subsampled target) that ranks starts: built once, on first use."""
+        return ConfidenceEstimator(self.tgt_unit, max_target=RANK_TARGET)
+
 
 @dataclass
 class _AgentRuns:
@@ -214,7 +220,7 @@ def run_global(
     agents = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, starts, segments[0], **loop)
     if len(segments) == 1:
         return agents
-    order = np.argsort(-np.asarray(quick_scores(p, agents, config.threshold)), kind="stable")
+    order = np.argsort(-np.asarray(quick_scores(p, agents)), kind="stable")
     keep = [int(b) for b in order[: config.refine_top]]
     pose = np.stack([agents[b].transform for b in keep])
     more = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, pose, segments[1], **loop)
@@ -231,10 +237,9 @@ def extend(agent: AgentResult, part: AgentResult) -> None:
     agent.transform = part.transform
 
 
-def quick_scores(p: _Prepared, agents: Sequence[AgentResult], threshold: float) -> list[float]:
+def quick_scores(p: _Prepared, agents: Sequence[AgentResult]) -> list[float]:
     """A quick confidence of each agent's result (subsampled clouds): to rank starts before refining them."""
-    ranker = ConfidenceEstimator(p.tgt_unit, max_target=RANK_TARGET, threshold=threshold)
-    return [ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
+    return [p.ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
 
 
 def rank_starts(
@@ -243,7 +248,7 @@ def rank_starts(
     """Global mode: the agents' results ranked by a quick confidence -> (the ones to refine, every start's score)."""
     if config.init != "global":
         return [0], []
-    scores = quick_scores(p, agents, config.threshold)
+    scores = quick_scores(p, agents)
     order = np.argsort(-np.asarray(scores), kind="stable")
     return [int(b) for b in order[: config.refine_top if refining else 1]], scores
 
@@ -298,7 +303,7 @@ def rescue(
         coarse = (schedule[0],) + (0,) * (len(schedule) - 1)
         batch = batch_score_fn(scorer, p.tgt_n)
         more = run_agent_batch(p.src_n, p.tgt_n, batch, scorer.table, restarts, coarse, **loop)
-        quick = quick_scores(p, more, config.threshold)
+        quick = quick_scores(p, more)
         for k in np.argsort(-np.asarray(quick), kind="stable")[: config.refine_top]:
             refined = icp(p.src_unit, p.tgt_unit, more[k].transform)
             index = len(runs.agents) + int(k)

@@ -27,6 +27,13 @@ ICP_REFINE_WINDOW = 0.05
 RESCUE_WINDOW = 0.5  # the rescue's wide ICP from the input pose (the ICP baseline's window)
 
 
+def check_icp_stages(stages: tuple[IcpStage, ...]) -> None:
+    """Raise ``ValueError`` unless every stage is a known method with a positive window."""
+    for method, window in stages:
+        if method not in ICP_METHODS or not window > 0:
+            raise ValueError(f"bad ICP stage ({method!r}, {window}): method in {ICP_METHODS}, window > 0")
+
+
 def two_windows(
     method: str, window: float = ICP_WINDOW, refine_window: float = ICP_REFINE_WINDOW
 ) -> tuple[IcpStage, ...]:
@@ -63,9 +70,7 @@ class RegistrationConfig:
     schedule: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
-        for method, window in self.icp_stages:
-            if method not in ICP_METHODS or not window > 0:
-                raise ValueError(f"bad ICP stage ({method!r}, {window}): method in {ICP_METHODS}, window > 0")
+        check_icp_stages(self.icp_stages)
         if self.rescue_window is not None and not self.rescue_window > 0:
             raise ValueError(f"rescue_window must be > 0 or None, got {self.rescue_window}")
         if self.init not in INITS:
@@ -94,9 +99,3 @@ PAPER_V2 = RegistrationConfig(icp_stages=DEFAULT_ICP_STAGES)
 # The service's default request: v2 with exit checks after the coarse phase and halfway through the fine one,
 # and both rescues of an unconfident result.
 SERVICE_DEFAULT = PAPER_V2.with_(exit_checks=(20, 40), rescue_window=RESCUE_WINDOW, rescue_restarts=True)
-
-NAMED_CONFIGS: dict[str, RegistrationConfig] = {
-    "paper-v1": PAPER_V1,
-    "paper-v2": PAPER_V2,
-    "service-default": SERVICE_DEFAULT,
-}

@@ -13,14 +13,13 @@ from pranet.core.confidence import subsample
 from pranet.core.pipeline import IcpResult
 from pranet.core.registration_config import (
     DEFAULT_ICP_STAGES,
-    ICP_METHODS,
     POINT_TO_PLANE,
     POINT_TO_POINT,
     IcpStage,
+    check_icp_stages,
 )
 from pranet.core.se3 import Array
 
-Stage = IcpStage  # (estimation method, max correspondence distance in the unit frame)
 NORMAL_RADIUS = 0.4  # unit frame; target normals (point-to-plane): PCA over at most NORMAL_MAX_NN neighbours
 NORMAL_MAX_NN = 30
 DEFAULT_VOXEL = 0.01  # downsample larger targets before ICP
@@ -38,7 +37,7 @@ def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
     return pc
 
 
-def make_icp(stages: Sequence[Stage] = DEFAULT_ICP_STAGES, max_iterations: int = 50):  # -> IcpFn
+def make_icp(stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES, max_iterations: int = 50):  # -> IcpFn
     """An ``IcpFn`` running Open3D's ICP from the agent's estimate, one pass per ``(method, max_distance)``
     stage, each from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 0.1 and 0.05, then
     point-to-point at 0.1 and 0.05). The target's preparation (voxel grid, normals) is cached per content."""
@@ -47,9 +46,7 @@ def make_icp(stages: Sequence[Stage] = DEFAULT_ICP_STAGES, max_iterations: int =
     stages = tuple((str(m), float(d)) for m, d in stages)
     if not stages:
         raise ValueError("ICP needs at least one stage")
-    for m, d in stages:
-        if m not in ICP_METHODS or not d > 0:
-            raise ValueError(f"bad ICP stage ({m!r}, {d}): method in {ICP_METHODS}, distance > 0")
+    check_icp_stages(stages)
     reg = o3d.pipelines.registration
     estimations = {
         POINT_TO_POINT: reg.TransformationEstimationPointToPoint(),
