@@ -403,11 +403,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = parse_args(argv)
-    # Open3D reads OMP_NUM_THREADS when it is first imported (nothing below has imported it yet in a CLI run).
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-
+def load_test_shapes(args: argparse.Namespace) -> tuple[Any, np.ndarray, np.ndarray, Path]:
+    """``(test data, chosen shape indices, their points, data root)``: unseen categories, first ``--limit``."""
     from pranet.training.data import data_dir, load_modelnet40, test_indices
 
     root = data_dir(args.data_dir)
@@ -415,25 +412,36 @@ def main(argv: Sequence[str] | None = None) -> int:
     idx = test_indices(data.labels)
     if args.limit is not None:
         idx = idx[: args.limit]
-    shapes = data.points[idx]
+    return data, idx, data.points[idx], root
 
-    runners: list[Runner] = []
+
+@dataclass
+class Methods:
+    """The runners of one ``pranet-eval`` run and what the report says about them."""
+
+    runners: list[Runner] = field(default_factory=list)
     model_info: dict[str, Any] | None = None
-    switch_step, n_steps = 20, 60
-    pranet = [m for m in args.methods if m in PRANET_METHODS]
-    trained_rotation = ""
+    trained_rotation: str = ""
+    switch_step: int = 20
+    n_steps: int = 60
+    baseline_params: dict[str, Any] = field(default_factory=dict)
+
+
+def build_methods(args: argparse.Namespace) -> Methods:
+    """PRANet through the engine (one runner for v1, v2 and the adaptive variant), then the baselines."""
+    m = Methods()
+    pranet = [name for name in args.methods if name in PRANET_METHODS]
     if pranet:
         from pranet.engine.engine import Engine
 
         engine = Engine.load(args.model, threads=args.threads)
         scorer = engine.scorer
-        model_info = {**scorer.info(), "dir": str(args.model or "default"), "n_points": scorer.n_points}
-        model_info["training"] = scorer.card.get("training")
-        trained_rotation = scorer.card.get("config", {}).get("sampling", {}).get("rotation", "")
-        switch_step, n_steps = int(scorer.schedule[0]), int(sum(scorer.schedule))
-        runners.append(pranet_runner(engine, pranet, policy=args.policy, early_stop=args.early_stop))
-    baseline_params: dict[str, Any] = {}
-    if any(m in BASELINE_METHODS for m in args.methods):
+        m.model_info = {**scorer.info(), "dir": str(args.model or "default"), "n_points": scorer.n_points}
+        m.model_info["training"] = scorer.card.get("training")
+        m.trained_rotation = scorer.card.get("config", {}).get("sampling", {}).get("rotation", "")
+        m.switch_step, m.n_steps = int(scorer.schedule[0]), int(sum(scorer.schedule))
+        m.runners.append(pranet_runner(engine, pranet, policy=args.policy, early_stop=args.early_stop))
+    if any(name in BASELINE_METHODS for name in args.methods):
         from functools import partial
 
         from pranet.training import baselines
@@ -441,7 +449,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fns = dict(baselines.BASELINES)
         icp_distance = args.icp_distance if args.icp_distance is not None else baselines.ICP_MAX_DISTANCE
         fns["icp"] = partial(baselines.icp, max_distance=icp_distance)
-        baseline_params = {
+        m.baseline_params = {
             "icp_max_distance": icp_distance,
             "refine_max_distance": baselines.REFINE_MAX_DISTANCE,
             "icp_max_iterations": baselines.ICP_MAX_ITERATIONS,
@@ -450,72 +458,78 @@ def main(argv: Sequence[str] | None = None) -> int:
             "fpfh_radius": baselines.FPFH_RADIUS,
             "ransac": [baselines.RANSAC_MAX_ITERATIONS, baselines.RANSAC_CONFIDENCE],
         }
-        runners += [baseline_runner(m, fns[m]) for m in BASELINE_METHODS if m in args.methods]
-    if args.plot is not None and "pranet-v1" not in args.methods:
-        print("pranet-eval: --plot needs pranet-v1 among --methods; no plot", file=sys.stderr)
+        m.runners += [baseline_runner(name, fns[name]) for name in BASELINE_METHODS if name in args.methods]
+    return m
 
-    t0 = time.perf_counter()
-    result = evaluate(
-        shapes,
-        args.setting,
-        runners,
-        seed=args.seed,
-        max_angle_deg=args.max_angle,
-        rotation=args.rotation,
-        curves_for="pranet-v1" if args.plot is not None and "pranet-v1" in args.methods else None,
-        n_curve_steps=n_steps,
-        shape_ids=idx,
-        progress=not args.quiet,
-    )
-    wall_s = time.perf_counter() - t0
+
+def paper_rows(args: argparse.Namespace, trained_rotation: str) -> dict[str, dict[str, float]]:
+    """The paper's row beside each method (with Table 4's time where it has one)."""
     paper = {
         m: ref
         for m in args.methods
         if (ref := paper_reference(args.setting, m, args.policy, args.rotation, trained_rotation)) is not None
     }
-    paper = {m: {**ref, **({"ms": PAPER_TIME_MS[m]} if m in PAPER_TIME_MS else {})} for m, ref in paper.items()}
-    summary = {m: result["summary"][m] for m in args.methods if m in result["summary"]}
+    return {m: {**ref, **({"ms": PAPER_TIME_MS[m]} if m in PAPER_TIME_MS else {})} for m, ref in paper.items()}
 
-    model_str = f"{model_info['name']} {model_info['version']}" if model_info else "-"
+
+def write_json(args: argparse.Namespace, data: Any, idx: np.ndarray, root: Path, m: Methods, out: dict) -> None:
+    config = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    config.update(
+        data_root=str(root),
+        data_files=[str(f) for f in data.files],
+        n_pairs=len(idx),
+        translation_max=0.5,
+        pair_generator="make_pair(shape, setting, pair_rng(seed, setting, i), max_angle, 0.5, rotation)",
+        baselines=m.baseline_params,
+    )
+    doc = {"config": config, "model": m.model_info, "environment": environment(args.threads), **out}
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(nan_to_none(doc), default=json_default, indent=1))
+    print(f"pranet-eval: wrote {args.json}", file=sys.stderr)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv)
+    # Open3D reads OMP_NUM_THREADS when it is first imported (nothing below has imported it yet in a CLI run).
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    # 1. The pairs and the methods.
+    data, idx, shapes, root = load_test_shapes(args)
+    m = build_methods(args)
+    plot = args.plot is not None and "pranet-v1" in args.methods
+    if args.plot is not None and not plot:
+        print("pranet-eval: --plot needs pranet-v1 among --methods; no plot", file=sys.stderr)
+    # 2. Every method on every pair.
+    t0 = time.perf_counter()
+    result = evaluate(
+        shapes,
+        args.setting,
+        m.runners,
+        seed=args.seed,
+        max_angle_deg=args.max_angle,
+        rotation=args.rotation,
+        curves_for="pranet-v1" if plot else None,
+        n_curve_steps=m.n_steps,
+        shape_ids=idx,
+        progress=not args.quiet,
+    )
+    wall_s = time.perf_counter() - t0
+    # 3. The table, the figure, the JSON.
+    paper = paper_rows(args, m.trained_rotation)
+    summary = {name: result["summary"][name] for name in args.methods if name in result["summary"]}
+    model_str = f"{m.model_info['name']} {m.model_info['version']}" if m.model_info else "-"
     print(
         f"\nsetting={args.setting} pairs={len(idx)} seed={args.seed} rotation={args.rotation} <= {args.max_angle}° "
         f"policy={args.policy}{' early-stop' if args.early_stop else ''} model={model_str}  (success: rot < "
         f"{SUCCESS_ROTATION_DEG}° and trans < {SUCCESS_TRANSLATION}; means over pairs; paper: AAAI 2022 Tables 1-4)"
     )
     print(format_table(summary, paper))
-
-    if args.plot is not None and "fig5" in result:
-        plot_fig5(
-            result["fig5"],
-            args.plot,
-            switch_step,
-            f"PRANet-v1, {args.setting}, {len(idx)} pairs ({model_info['name'] if model_info else ''})",
-        )
+    if plot and "fig5" in result:
+        name = m.model_info["name"] if m.model_info else ""
+        plot_fig5(result["fig5"], args.plot, m.switch_step, f"PRANet-v1, {args.setting}, {len(idx)} pairs ({name})")
         print(f"pranet-eval: wrote {args.plot}", file=sys.stderr)
-
     if args.json is not None:
-        config = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
-        config.update(
-            data_root=str(root),
-            data_files=[str(f) for f in data.files],
-            n_pairs=len(idx),
-            translation_max=0.5,
-            pair_generator="make_pair(shape, setting, pair_rng(seed, setting, i), max_angle, 0.5, rotation)",
-            baselines=baseline_params,
-        )
-        doc = {
-            "config": config,
-            "model": model_info,
-            "environment": environment(args.threads),
-            "wall_s": wall_s,
-            "summary": summary,
-            "paper": paper,
-            "fig5": result.get("fig5"),
-            "records": result["records"],
-        }
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(nan_to_none(doc), default=json_default, indent=1))
-        print(f"pranet-eval: wrote {args.json}", file=sys.stderr)
+        out = {"wall_s": wall_s, "summary": summary, "paper": paper, "fig5": result.get("fig5")}
+        write_json(args, data, idx, root, m, {**out, "records": result["records"]})
     return 0
 
 
