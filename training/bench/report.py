@@ -28,7 +28,8 @@ LABELS = {
 }
 
 
-def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after the other)
+def _header(result: dict[str, Any]) -> list[str]:
+    """The model, the machine and the pairs."""
     out: list[str] = []
     env, model = result["environment"], result["model"]
     out.append(
@@ -44,6 +45,12 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
         f"\nPairs: {cfg.get('pairs')} per setting (unseen ModelNet40 categories, seed {cfg.get('seed')}, rotation "
         f"≤ 60°, translation ≤ 0.5); agent steps per scale: {cfg.get('steps') or list(result['model_schedule'])}."
     )
+    return out
+
+
+def _latency(result: dict[str, Any]) -> list[str]:
+    """Per setting and method: latency and success."""
+    out: list[str] = []
     settings = list(result["summary"])
     out.append("\n## Latency and success\n")
     out.append(
@@ -71,7 +78,13 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
             ["setting", "method", "pairs", "median ms", "p95 ms", "success %", "rot° med", "trans med", "errors"], rows
         )
     )
+    return out
 
+
+def _ratios(result: dict[str, Any]) -> list[str]:
+    """Each method's median latency as a ratio to the reference peers'."""
+    out: list[str] = []
+    settings = list(result["summary"])
     refs = [r for r in REFERENCES if all(r in result["summary"][s] for s in settings)]
     if refs:
         out.append("\n## Median latency relative to RANSAC+ICP and FGR+ICP (same run)\n")
@@ -84,7 +97,13 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
                     row.append(f"{result['summary'][s][m]['ms_median'] / result['summary'][s][r]['ms_median']:.3f}")
             rows.append(row)
         out.append(md_table(head, rows))
+    return out
 
+
+def _breakdowns(result: dict[str, Any]) -> list[str]:
+    """Where a registration's time goes, in-process and over HTTP."""
+    out: list[str] = []
+    settings = list(result["summary"])
     for variant, table in result.get("breakdown", {}).items():
         in_method = variant.split(" / ")[0]
         name = LABELS.get(in_method, in_method)
@@ -113,7 +132,13 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
         ]
         rows = [[st] + [table[s][w].get(st, math.nan) for s in settings for w in ("in", "http")] for st in stages]
         out.append(md_table(head, rows))
+    return out
 
+
+def _flops(result: dict[str, Any]) -> list[str]:
+    """The reward net's FLOPs and achieved GFLOP/s."""
+    out: list[str] = []
+    env = result["environment"]
     fl = result.get("flops")
     if fl:
         out.append("\n## Reward net: FLOPs and achieved GFLOP/s\n")
@@ -147,6 +172,12 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
             f"\nscore.onnx MFLOP by op: {ops}. Target-only work inside score.onnx: "
             f"{fl['score_target_only_flops'] / 1e6:.1f} MFLOP per step ({100 * share:.0f} %)."
         )
+    return out
+
+
+def _sgemm(result: dict[str, Any]) -> list[str]:
+    """This CPU's sgemm, the ceiling of the GFLOP/s above."""
+    out: list[str] = []
     if result.get("sgemm"):
         out.append("\n## This CPU's sgemm (same run)\n")
         out.append(
@@ -155,7 +186,12 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
                 [[r["impl"], str(r["n"]), str(r["threads"]), r["gflops"]] for r in result["sgemm"]],
             )
         )
+    return out
 
+
+def _ort_options(result: dict[str, Any]) -> list[str]:
+    """Per-call latency of onnxruntime session options."""
+    out: list[str] = []
     if result.get("ort_variants"):
         out.append("\n## onnxruntime session options: ms per score call (one agent step)\n")
         out.append(
@@ -180,7 +216,13 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
         ]
         head = ["variant", "median ms", "min ms", "p90 ms", "embed ms", "× default (best)", "× default (median)"]
         out.append(md_table(head, rows))
+    return out
 
+
+def _variants(result: dict[str, Any]) -> list[str]:
+    """Early stop, int8 and head reuse against the default; the int8 drift."""
+    out: list[str] = []
+    settings = list(result["summary"])
     variants = result.get("variants", {})
     if variants and any(v["n"] for s in variants for v in variants[s].values()):
         out.append("\n## Early stop, int8 and head reuse against the default (fp32, all steps)\n")
@@ -222,7 +264,12 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
             f"max |Δ| {d['max_abs']:.2e}, mean |Δ| {d['mean_abs']:.2e}, p99 {d['p99_abs']:.2e} (mean |reward| "
             f"{d['mean_abs_reward_fp32']:.3f}); same action chosen in {100 * d['argmax_agreement']:.1f} % of steps."
         )
+    return out
 
+
+def _throughput(result: dict[str, Any]) -> list[str]:
+    """Registrations per second of the service."""
+    out: list[str] = []
     if result.get("throughput"):
         out.append("\n## Service throughput (pranet-serve, default requests = PRANet adaptive, concurrent clients)\n")
         rows = [
@@ -255,7 +302,13 @@ def report(result: dict[str, Any]) -> str:  # noqa: C901 (sections, one after th
                 rows,
             )
         )
-    return "\n".join(out) + "\n"
+    return out
+
+
+def report(result: dict[str, Any]) -> str:
+    """The markdown report: one section per measurement, those the run made."""
+    sections = (_header, _latency, _ratios, _breakdowns, _flops, _sgemm, _ort_options, _variants, _throughput)
+    return "\n".join(line for section in sections for line in section(result)) + "\n"
 
 
 def breakdown(
