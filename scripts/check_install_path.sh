@@ -130,6 +130,14 @@ for path in ("/", "/static/app.js", "/static/parsers.js", "/static/style.css", "
     with urllib.request.urlopen(url + path, timeout=30) as r:
         assert r.status == 200 and len(r.read()) > 100, path
 print("[install-path] web viewer served from the wheel")
+
+# (d) The OpenAPI page's Swagger UI comes from the installed fastapi-offline, not from a CDN.
+with urllib.request.urlopen(url + "/docs", timeout=30) as r:
+    page = r.read().decode()
+assert "https://" not in page and "http://" not in page, "/docs names a remote asset"
+with urllib.request.urlopen(url + "/static-offline-docs/swagger-ui-bundle.js", timeout=30) as r:
+    assert r.status == 200 and len(r.read()) > 100_000
+print("[install-path] /docs assets served locally")
 PY
 then
     say "FAILED; pranet-serve log:"

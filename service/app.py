@@ -15,6 +15,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
+from fastapi_offline import FastAPIOffline
 from starlette.middleware.cors import CORSMiddleware
 
 from pranet.service.middleware import ApiKeyMiddleware, BodySizeLimitMiddleware
@@ -26,6 +27,8 @@ from pranet.service.state import ServiceState
 
 OPEN_PATHS = ("/health", "/")  # no API key needed: liveness and the viewer page (it asks for the key)
 OPEN_PREFIXES = (viewer.STATIC_PREFIX + "/",)
+# /docs (Swagger UI) and /redoc load their scripts and styles from here, not from a CDN: they work offline.
+DOCS_STATIC_PREFIX = "/static-offline-docs"
 
 DESCRIPTION = f"""
 Point-cloud registration with PRANet (a learned agent of discrete rigid actions) and optional ICP.
@@ -102,12 +105,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.service = state
         yield
 
-    app = FastAPI(
+    app = FastAPIOffline(
         title="PRANet registration service",
         version=_version(),
         description=DESCRIPTION,
         lifespan=lifespan,
         debug=False,
+        static_url=DOCS_STATIC_PREFIX,
     )
     app.state.settings = settings
     for router in (health.router, model.router, register.router, viewer.router):

@@ -1,5 +1,6 @@
 """The web viewer (``GET /``, ``service/static``): its file parsers in node, and the whole page in headless
-Chromium against a real ``pranet-serve`` with an API key (``viewer.spec.mjs``, playwright-core).
+Chromium against a real ``pranet-serve`` with an API key (``viewer.spec.mjs``, playwright-core); and the
+OpenAPI page ``/docs`` rendered in Chromium with the network blocked beyond the service (``docs.spec.mjs``).
 
 Needs node, ``npm ci`` in ``tests/web`` and Chromium (``apt-get install chromium``; ``$CHROMIUM`` to
 use another binary); the tests skip, saying which is missing, otherwise, or fail when
@@ -189,3 +190,26 @@ def test_viewer_registers_two_ply_files_in_chromium(guarded_server, tmp_path: Pa
     assert report["status"] == "converged" and report["frames"] == 4  # input, 2 steps, after ICP
     assert SCREENSHOT.stat().st_size > 10_000
     print(f"viewer screenshot: {SCREENSHOT}")
+
+
+def test_docs_page_renders_offline_in_chromium(guarded_server) -> None:
+    """Swagger UI at /docs renders the /register operation from the service's own assets, with every other host
+    blocked (before fastapi-offline, the page loaded its script from a CDN and stayed blank offline)."""
+    node = _node()
+    if not Path(CHROMIUM).exists():
+        _missing(f"Chromium not found at {CHROMIUM} (apt-get install chromium, or set $CHROMIUM)")
+    env = {
+        **os.environ,
+        "PRANET_DOCS_URL": guarded_server.url,
+        "PRANET_DOCS_API_KEY": API_KEY,
+        "PRANET_DOCS_SCREENSHOT": str(SCREENSHOT.parent / "docs.png"),
+        "CHROMIUM": CHROMIUM,
+    }
+    proc = subprocess.run(
+        [node, str(WEB / "docs.spec.mjs")], capture_output=True, text=True, timeout=120, env=env, cwd=REPO
+    )
+    lines = proc.stdout.strip().splitlines()
+    report = json.loads(lines[-1]) if lines else {}
+    assert proc.returncode == 0 and report.get("ok"), proc.stdout + proc.stderr
+    assert "/register" in report["operations"] and report["blocked"] == []
+    assert report["title"] and "PRANet" in report["title"]
