@@ -26,9 +26,15 @@ def encode_cloud(points: npt.ArrayLike) -> dict[str, str]:
     return {"encoding": ENCODING, "data": base64.b64encode(data).decode("ascii")}
 
 
-def max_points_of(data: str) -> int:
-    """An upper bound on the points ``data`` decodes to, without decoding it."""
-    return len(data) // 4 * 3 // BYTES_PER_POINT
+def encoded_length(n_points: int) -> int:
+    """Characters of ``data`` for ``n_points`` points: base64 writes 4 characters per 3 bytes, so 16 per point."""
+    return 4 * -(-BYTES_PER_POINT * n_points // 3)
+
+
+def point_count(data: str) -> int:
+    """The points ``data`` decodes to (rounded down; exact when it is valid), without decoding it."""
+    padding = 2 if data.endswith("==") else 1 if data.endswith("=") else 0
+    return max(0, len(data) // 4 * 3 - padding) // BYTES_PER_POINT
 
 
 def decode_cloud(data: str) -> np.ndarray:

@@ -18,7 +18,7 @@ from fastapi.responses import JSONResponse
 from fastapi_offline import FastAPIOffline
 from starlette.middleware.cors import CORSMiddleware
 
-from pranet.service.middleware import ApiKeyMiddleware, BodySizeLimitMiddleware
+from pranet.service.middleware import ApiKeyMiddleware, BodyLimitsMiddleware
 from pranet.service.registration import RequestError
 from pranet.service.routes import health, model, register, viewer
 from pranet.service.schemas import ENCODING, RegisterRequest
@@ -71,6 +71,18 @@ async def _unexpected_error(_: Request, exc: Exception) -> JSONResponse:
     return _error(500, "internal server error")
 
 
+def _body_limit_hint(settings: Settings) -> str:
+    """How the body limit was set and how to get under it, for the 413's message."""
+    if settings.max_body_bytes is not None:
+        origin = "PRANET_MAX_BODY_BYTES"
+    else:
+        origin = f"two clouds of PRANET_MAX_POINTS={settings.max_points:,} points base64-encoded"
+    return (
+        f"the limit is {origin}. Send clouds base64-encoded (pranet-client does above 5000 points; a JSON list "
+        "costs 2-4x the bytes), downsample them, or raise the server's limits"
+    )
+
+
 def _custom_openapi(app: FastAPI, settings: Settings) -> dict[str, Any]:
     """FastAPI's schema plus the request body of /register (parsed by hand, in a worker thread)."""
     if app.openapi_schema:
@@ -121,7 +133,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(Exception, _unexpected_error)
     # Middlewares: the last added runs first. Order on the way in: CORS -> API key -> body size.
-    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(
+        BodyLimitsMiddleware,
+        max_bytes=settings.body_limit_bytes,
+        timeout_s=settings.body_timeout_s,
+        hint=_body_limit_hint(settings),
+    )
     if settings.api_key:
         app.add_middleware(
             ApiKeyMiddleware, api_key=settings.api_key, open_paths=OPEN_PATHS, open_prefixes=OPEN_PREFIXES

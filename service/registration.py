@@ -8,6 +8,7 @@ thread (it is CPU-bound); raises ``RequestError`` for anything the client can fi
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 from pydantic import ValidationError
@@ -16,7 +17,7 @@ from pranet.core.agent import AgentTimeout
 from pranet.core.pipeline import Registration
 from pranet.core.preprocess import DegenerateCloudError
 from pranet.core.registration_config import SERVICE_DEFAULT, RegistrationConfig
-from pranet.core.wire import WireError, max_points_of
+from pranet.core.wire import WireError, point_count
 from pranet.core.wire import decode_cloud as decode_wire
 from pranet.engine.engine import Engine
 from pranet.service.schemas import (
@@ -45,18 +46,56 @@ def validation_detail(error: ValidationError) -> list[dict]:
     return error.errors(include_url=False, include_input=False, include_context=False)
 
 
-def parse_request(body: bytes) -> RegisterRequest:
+@dataclass(frozen=True)
+class CloudLimits:
+    """The most points per cloud (``PRANET_MAX_POINTS``), and per cloud sent as a JSON list (``PRANET_MAX_LIST_POINTS``:
+    a list costs about 3 us a point to parse, base64 about 0.06 us)."""
+
+    max_points: int
+    max_list_points: int
+
+    @property
+    def list_points(self) -> int:
+        return min(self.max_points, self.max_list_points)
+
+
+_SEND_BASE64 = "send it base64-encoded (pranet-client does above 5000 points), downsample it, or raise the limit"
+_BRACKET_SLACK = 16  # '[' outside the clouds' points: the two clouds' own lists, steps, exit_checks
+
+
+def parse_request(body: bytes, limits: CloudLimits) -> RegisterRequest:
+    # Every point of a JSON list opens a '['; counting them (milliseconds for 40 MB) bounds the parse's cost
+    # before it starts: parsing 40 MB of "[0,0,0]," would take about 13 s.
+    if body.count(b"[") > 2 * limits.list_points + _BRACKET_SLACK:
+        raise RequestError(
+            413,
+            f"request body holds more than {2 * limits.list_points:,} points as JSON lists, more than this server's "
+            f"limit of {limits.list_points:,} per cloud for lists ({_list_limit_name(limits)}); "
+            "send clouds base64-encoded (pranet-client does above 5000 points), downsample them, or raise the limit",
+        )
     try:
         return RegisterRequest.model_validate_json(body)
     except ValidationError as e:
         raise RequestError(422, validation_detail(e)) from None
 
 
-def decode_cloud(cloud: list[list[float]] | EncodedCloud, name: str, max_points: int) -> np.ndarray:
-    """A request cloud -> ``(N, 3)`` float64; 413 past ``max_points``, 422 for undecodable data."""
+def _list_limit_name(limits: CloudLimits) -> str:
+    return "PRANET_MAX_LIST_POINTS" if limits.max_list_points < limits.max_points else "PRANET_MAX_POINTS"
+
+
+def _too_many(name: str, n: int, limit: int, setting: str, fix: str, form: str = "") -> RequestError:
+    return RequestError(
+        413, f"{name}: {n:,} points{form}, more than this server's limit of {limit:,} ({setting}); {fix}"
+    )
+
+
+def decode_cloud(cloud: list[list[float]] | EncodedCloud, name: str, limits: CloudLimits) -> np.ndarray:
+    """A request cloud -> ``(N, 3)`` float64; 413 past the limits (with the count and the fix), 422 for
+    undecodable data."""
     if isinstance(cloud, EncodedCloud):
-        if max_points_of(cloud.data) > max_points + 1:
-            raise RequestError(413, f"{name}: more than the server's limit of {max_points} points")
+        n = point_count(cloud.data)  # from the length alone: a cloud over the limit is never decoded
+        if n > limits.max_points:
+            raise _too_many(name, n, limits.max_points, "PRANET_MAX_POINTS", "downsample the cloud or raise the limit")
         try:
             points = decode_wire(cloud.data)
         except WireError as e:
@@ -65,11 +104,11 @@ def decode_cloud(cloud: list[list[float]] | EncodedCloud, name: str, max_points:
         finite = points[np.isfinite(points)]
         if finite.size and np.abs(finite).max() > MAX_ABS_COORDINATE:
             raise RequestError(422, f"{name}: coordinates must satisfy |x| <= {MAX_ABS_COORDINATE:g}")
-    else:
-        points = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)  # (N, 3); the schema fixed 3 per point
-    if len(points) > max_points:
-        raise RequestError(413, f"{name}: {len(points)} points, more than the server's limit of {max_points}")
-    return points
+        return points
+    if len(cloud) > limits.list_points:
+        setting = _list_limit_name(limits)
+        raise _too_many(name, len(cloud), limits.list_points, setting, _SEND_BASE64, form=" as a JSON list")
+    return np.asarray(cloud, dtype=np.float64).reshape(-1, 3)  # (N, 3); the schema fixed 3 per point
 
 
 def _matrix(a: np.ndarray) -> list[list[float]]:
@@ -108,7 +147,7 @@ def run_registration(
     body: bytes,
     engine: Engine,
     model_info: dict,
-    max_points: int,
+    limits: CloudLimits,
     deadline: float,
     admitted_at: float | None = None,
 ) -> RegisterResponse:
@@ -120,9 +159,9 @@ def run_registration(
     t0 = time.perf_counter()
     queue_ms = (t0 - admitted_at) * 1e3 if admitted_at is not None else 0.0
     # 1. Parse the request, decode both clouds, and map the options.
-    req = parse_request(body)
-    source = decode_cloud(req.source, "source", max_points)
-    target = decode_cloud(req.target, "target", max_points)
+    req = parse_request(body, limits)
+    source = decode_cloud(req.source, "source", limits)
+    target = decode_cloud(req.target, "target", limits)
     config = request_config(req, len(engine.scorer.schedule))
     decode_ms = (time.perf_counter() - t0) * 1e3
     if time.monotonic() > deadline:

@@ -10,13 +10,16 @@ from fastapi import APIRouter, Request
 from starlette.requests import ClientDisconnect
 
 from pranet.service.deps import StateDep
-from pranet.service.registration import RequestError, run_registration
+from pranet.service.registration import CloudLimits, RequestError, run_registration
 from pranet.service.schemas import ErrorResponse, RegisterResponse
 
 router = APIRouter(tags=["registration"])
 
 _errors = {
-    413: "body or a cloud larger than the server's limits",
+    408: "the body did not arrive within the server's body timeout (PRANET_BODY_TIMEOUT_S)",
+    413: "body larger than the server's byte limit (PRANET_MAX_BODY_BYTES, derived from PRANET_MAX_POINTS), or a cloud "
+    "with more points than PRANET_MAX_POINTS (PRANET_MAX_LIST_POINTS for a JSON list); the message gives the count and "
+    "the fix",
     415: "Content-Type is not application/json",
     422: "invalid request: unknown field, bad value, or a degenerate cloud (NaN/inf, < 3 points, coplanar, ...)",
     503: "model not loaded, or too many registrations in progress (retry later)",
@@ -58,7 +61,7 @@ async def register_clouds(request: Request, state: StateDep) -> RegisterResponse
             body,
             engine=engine,
             model_info=state.require_model().info(),
-            max_points=settings.max_points,
+            limits=CloudLimits(settings.max_points, settings.max_list_points),
             deadline=deadline,
             admitted_at=time.perf_counter(),
         )

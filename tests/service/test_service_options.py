@@ -96,7 +96,7 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
     from oracle_scorer import BatchedRangeLimitedOracle, rotated_problem, snapping_icp, unit_truth
 
     from pranet.engine.engine import Engine
-    from pranet.service.registration import run_registration
+    from pranet.service.registration import CloudLimits, run_registration
 
     src, tgt, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
     icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
@@ -108,7 +108,7 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
         info = {"name": "oracle", "version": "0", "sha256": "0" * 64}
         # The engine's ICP functions: the snapping stand-in for the refinement, the one that stays for the wide pass.
         engine = Engine(oracle, icp_factory=lambda stages: stays if len(stages) == 1 else icp)
-        out = run_registration(body, engine, info, 10**6, time.monotonic() + 60)
+        out = run_registration(body, engine, info, CloudLimits(10**6, 10**6), time.monotonic() + 60)
         return out.model_dump()
 
     rescued = run()

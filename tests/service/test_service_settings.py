@@ -15,7 +15,9 @@ def test_defaults(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.delenv(f"PRANET_{name.upper()}", raising=False)
     s = Settings()
     assert (s.model_dir, s.host, s.port, s.workers, s.threads) == (None, "127.0.0.1", 8000, 1, 2)
-    assert (s.max_points, s.request_timeout_s, s.max_concurrency, s.max_queue) == (200_000, 30.0, 2, 4)
+    assert (s.max_points, s.request_timeout_s, s.max_concurrency, s.max_queue) == (1_200_000, 30.0, 2, 4)
+    assert (s.max_list_points, s.max_body_bytes, s.body_timeout_s) == (200_000, None, 20.0)
+    assert s.body_limit_bytes == 38_465_536  # derived: 2 clouds x 16 base64 characters x 1.2M points + 64 kB
     assert s.api_key is None and s.cors_origins == []
 
 
