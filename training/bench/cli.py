@@ -14,8 +14,13 @@ from pranet.training.reporting import nan_to_none
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["scans"]:  # the real-scan benchmark (training.bench.scans), a subcommand of its own
+        from pranet.training.bench.scans import main as scans_main
+
+        return scans_main(argv[1:])
     args = parse_args(argv)
-    command = shlex.join(["pranet-bench", *(sys.argv[1:] if argv is None else argv)])
+    command = shlex.join(["pranet-bench", *argv])
     result = run(args, command)
     result["breakdown"] = {
         f"{a} / {b}": breakdown(result["records"], args.settings, a, b)
