@@ -2,6 +2,7 @@
 
     pranet-client register SOURCE TARGET [--url URL] [--api-key KEY] [--no-icp] [--json]
                                          [--save-aligned OUT] [--plot OUT.png] [--init global]
+    pranet-client register-many PAIRS.csv --out results.jsonl [--concurrency K] [--shard-index I --shard-count N]
     pranet-client health | ready | model [--url URL]
 
 The printed transform is ``T_target_source``: ``target ≈ R @ source + t``. Every failure (server
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from pranet.client.batch import RetryPolicy
 from pranet.client.client import DEFAULT_URL, PranetClient, PranetError, RegistrationResult
 from pranet.client.io import SUPPORTED_SUFFIXES, PointCloudIOError, read_point_cloud, write_point_cloud
 from pranet.core.se3 import apply_transform, rotation_angle
@@ -29,6 +31,11 @@ URL_ENV = "PRANET_URL"
 API_KEY_ENV = "PRANET_API_KEY"
 PLOT_SUFFIXES = (".png", ".pdf", ".svg", ".jpg", ".jpeg")
 PLOT_POINTS = 3000  # points per cloud drawn in the 3-D scatter plots
+LIMITS_HELP = (
+    "Size limits: the service refuses (413) clouds over its point limit (1,200,000 per cloud by default, "
+    "PRANET_MAX_POINTS) and JSON-list clouds over 200,000 points (PRANET_MAX_LIST_POINTS); this client sends clouds "
+    "over 5000 points base64-encoded, so only the point limit applies. Downsample larger clouds first."
+)
 
 
 class CliError(Exception):
@@ -53,6 +60,24 @@ def _common_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds per request (default: 120)")
 
 
+def _positive(text: str) -> int:
+    return _int_at_least(text, 1)
+
+
+def _non_negative(text: str) -> int:
+    return _int_at_least(text, 0)
+
+
+def _int_at_least(text: str, low: int) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
+    return value
+
+
 def _step_counts(text: str) -> list[int]:
     try:
         counts = [int(x) for x in text.split(",")]
@@ -63,36 +88,20 @@ def _step_counts(text: str) -> list[int]:
     return counts
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="pranet-client",
-        description="Client of the PRANet point cloud registration service.",
+def _registration_options(parser: argparse.ArgumentParser) -> None:
+    """The request's options, shared by register and register-many."""
+    parser.add_argument(
+        "--policy", help="agent policy: deterministic, stoch1 or stoch2 (server default: deterministic)"
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
-    reg = sub.add_parser(
-        "register",
-        help="register SOURCE onto TARGET and print T_target_source",
-        description="Register SOURCE onto TARGET. Prints T_target_source (target ≈ R @ source + t). "
-        f"Files: {', '.join(SUPPORTED_SUFFIXES)}.",
-    )
-    reg.add_argument("source", type=Path, help="the cloud that is moved")
-    reg.add_argument("target", type=Path, help="the cloud it is aligned to")
-    _common_options(reg)
-    reg.add_argument("--no-icp", dest="icp", action="store_false", help="skip the ICP refinement (PRANet-v1)")
-    reg.add_argument("--json", action="store_true", help="print the raw JSON response instead of a summary")
-    reg.add_argument("--save-aligned", type=Path, metavar="OUT", help="write the transformed source to OUT")
-    reg.add_argument("--plot", type=Path, metavar="OUT", help="draw the clouds before/after and per-step curves")
-    reg.add_argument("--policy", help="agent policy: deterministic, stoch1 or stoch2 (server default: deterministic)")
-    reg.add_argument("--seed", type=int, help="seed of the server's resampling and stochastic policies")
-    reg.add_argument(
+    parser.add_argument("--seed", type=int, help="seed of the server's resampling and stochastic policies")
+    parser.add_argument(
         "--steps",
         type=_step_counts,
         metavar="N[,N...]",
         help="agent steps per step-size scale, e.g. 20,40 (server default: the model's schedule; 0,0 = ICP only)",
     )
-    reg.add_argument("--early-stop", action="store_true", default=None, help="stop the agent when it converges")
-    checks = reg.add_mutually_exclusive_group()
+    parser.add_argument("--early-stop", action="store_true", default=None, help="stop the agent when it converges")
+    checks = parser.add_mutually_exclusive_group()
     checks.add_argument(
         "--exit-checks",
         type=_step_counts,
@@ -106,21 +115,84 @@ def build_parser() -> argparse.ArgumentParser:
         const=[],
         help="no exit checks: run every agent step, then ICP (the paper's PRANet-v2)",
     )
-    reg.add_argument(
+    parser.add_argument(
         "--no-rescue",
         dest="rescue",
         action="store_false",
         default=None,
         help="do not try a wide-window ICP from the input pose when the result is suspect",
     )
-    reg.add_argument(
+    parser.add_argument(
         "--init",
         choices=("identity", "global"),
         help="agent start: identity (server default; rotations up to 60°) or global (many starts, any rotation)",
     )
-    reg.add_argument(
+    parser.add_argument(
         "--starts", type=int, metavar="N", help="number of start rotations with --init global (default 24)"
     )
+
+
+def _options_of(args: argparse.Namespace) -> dict[str, Any]:
+    """The request options ``args`` asked for; ``None`` = the server's default."""
+    return {
+        "policy": args.policy,
+        "seed": args.seed,
+        "steps": args.steps,
+        "early_stop": args.early_stop,
+        "exit_checks": args.exit_checks,
+        "rescue": args.rescue,
+        "init": args.init,
+        "starts": args.starts,
+    }
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pranet-client",
+        description="Client of the PRANet point cloud registration service.",
+        epilog=LIMITS_HELP,
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    reg = sub.add_parser(
+        "register",
+        help="register SOURCE onto TARGET and print T_target_source",
+        description="Register SOURCE onto TARGET. Prints T_target_source (target ≈ R @ source + t). "
+        f"Files: {', '.join(SUPPORTED_SUFFIXES)}.",
+        epilog=LIMITS_HELP,
+    )
+    reg.add_argument("source", type=Path, help="the cloud that is moved")
+    reg.add_argument("target", type=Path, help="the cloud it is aligned to")
+    _common_options(reg)
+    reg.add_argument("--no-icp", dest="icp", action="store_false", help="skip the ICP refinement (PRANet-v1)")
+    reg.add_argument("--json", action="store_true", help="print the raw JSON response instead of a summary")
+    reg.add_argument("--save-aligned", type=Path, metavar="OUT", help="write the transformed source to OUT")
+    reg.add_argument("--plot", type=Path, metavar="OUT", help="draw the clouds before/after and per-step curves")
+    _registration_options(reg)
+
+    many = sub.add_parser(
+        "register-many",
+        help="register every pair of a CSV file into a JSON-lines file (resumable)",
+        description="Register every pair of PAIRS (a CSV file with the columns source and target; optional id and "
+        "T_target_source; other columns ignored; paths relative to the CSV's folder) into OUT, one JSON line per "
+        "pair, written as each answer arrives. A rerun skips the pairs already in OUT, so a killed run resumes where "
+        "it stopped. 502, 503 and connection errors are retried with exponential backoff; other errors are "
+        "recorded in the pair's line and not retried.",
+        epilog="Exit status: 0 every pair registered; 3 some pairs failed (their lines say why); 4 some pairs are "
+        "not done (the service was unavailable after the retries): run the same command again to resume; "
+        "1 the run could not start (unreadable CSV, ...); 2 bad arguments. " + LIMITS_HELP,
+    )
+    many.add_argument("pairs", type=Path, help="CSV file of pairs (the format of the real-scan pairs.csv)")
+    many.add_argument("--out", type=Path, required=True, help="JSON-lines results file, appended to (created if new)")
+    many.add_argument("--concurrency", type=_positive, default=4, metavar="K", help="pairs in flight (default: 4)")
+    many.add_argument("--retries", type=_non_negative, default=5, metavar="N", help="retries per pair (default: 5)")
+    many.add_argument("--shard-index", type=_non_negative, default=0, metavar="I", help="run the pairs i %% N == I")
+    many.add_argument("--shard-count", type=_positive, default=1, metavar="N", help="number of shards (default: 1)")
+    many.add_argument("--retry-errors", action="store_true", help="run again the pairs whose line in OUT is an error")
+    many.add_argument("--quiet", action="store_true", help="no progress line (the summary is still printed)")
+    _common_options(many)
+    many.add_argument("--no-icp", dest="icp", action="store_false", help="skip the ICP refinement (PRANet-v1)")
+    _registration_options(many)
 
     for name, text in (
         ("health", "check that the service process is up (GET /health)"),
@@ -250,17 +322,7 @@ def _register(args: argparse.Namespace, client: PranetClient) -> int:
     _check_output(args.plot, PLOT_SUFFIXES, "--plot")
     source = read_point_cloud(args.source)
     target = read_point_cloud(args.target)
-    options: dict[str, Any] = {
-        "policy": args.policy,
-        "seed": args.seed,
-        "steps": args.steps,
-        "early_stop": args.early_stop,
-        "exit_checks": args.exit_checks,
-        "rescue": args.rescue,
-        "return_trajectory": True if args.plot else None,
-        "init": args.init,
-        "starts": args.starts,
-    }
+    options = {**_options_of(args), "return_trajectory": True if args.plot else None}
     result = client.register(source, target, icp=args.icp, **options)
     if args.json:
         print(json.dumps(result.raw, indent=2))
@@ -276,10 +338,34 @@ def _register(args: argparse.Namespace, client: PranetClient) -> int:
     return 0
 
 
+def _register_many(args: argparse.Namespace, client: PranetClient) -> int:
+    if args.shard_index >= args.shard_count:
+        raise CliError(f"--shard-index {args.shard_index} must be less than --shard-count {args.shard_count}")
+    if not args.out.parent.is_dir():
+        raise CliError(f"{args.out}: folder {args.out.parent} does not exist")
+    summary = client.register_many(
+        args.pairs,
+        args.out,
+        args.concurrency,
+        retry=RetryPolicy(retries=args.retries),
+        shard_index=args.shard_index,
+        shard_count=args.shard_count,
+        retry_errors=args.retry_errors,
+        progress=not args.quiet,
+        icp=args.icp,
+        return_trajectory=False,  # not kept in the results: smaller answers
+        **_options_of(args),
+    )
+    print(summary.report(), file=sys.stderr)
+    return summary.exit_code
+
+
 def _run(args: argparse.Namespace) -> int:
     with PranetClient(args.url, api_key=args.api_key, timeout=args.timeout) as client:
         if args.command == "register":
             return _register(args, client)
+        if args.command == "register-many":
+            return _register_many(args, client)
         body = {"health": client.health, "ready": client.ready, "model": client.model}[args.command]()
         print(json.dumps(body, indent=2))
         return 0

@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
 import numpy as np
@@ -22,6 +23,9 @@ import numpy.typing as npt
 
 from pranet.client.io import read_point_cloud
 from pranet.core import wire
+
+if TYPE_CHECKING:
+    from pranet.client.batch import BatchSummary, Pair
 
 Array = npt.NDArray[np.float64]
 CloudLike = npt.ArrayLike | str | os.PathLike[str]
@@ -35,14 +39,17 @@ class PranetError(Exception):
     """The service answered with an error (4xx/5xx) or an unexpected body.
 
     ``status_code`` is the HTTP status (``None`` when there was no answer), ``detail`` the server's
-    parsed error body when it had one.
+    parsed error body when it had one, ``retry_after`` the seconds its ``Retry-After`` header asked for.
     """
 
-    def __init__(self, message: str, status_code: int | None = None, detail: Any = None) -> None:
+    def __init__(
+        self, message: str, status_code: int | None = None, detail: Any = None, retry_after: float | None = None
+    ) -> None:
         super().__init__(message)
         self.message = message
         self.status_code = status_code
         self.detail = detail
+        self.retry_after = retry_after
 
 
 class PranetConnectionError(PranetError):
@@ -154,6 +161,14 @@ def _error_message(response: httpx.Response) -> tuple[str, Any]:
     return str(detail), body
 
 
+def _retry_after(response: httpx.Response) -> float | None:
+    """``Retry-After`` in seconds (the HTTP-date form is not used by the service and is ignored)."""
+    try:
+        return max(0.0, float(response.headers["retry-after"]))
+    except (KeyError, ValueError):
+        return None
+
+
 class PranetClient:
     """Client of one service. ``api_key`` is sent as ``Authorization: Bearer <key>``.
 
@@ -193,7 +208,8 @@ class PranetClient:
             raise PranetConnectionError(f"cannot reach the service at {self.base_url}: {e}") from e
         if response.status_code >= 400:
             message, body = _error_message(response)
-            raise PranetError(f"HTTP {response.status_code} from {path}: {message}", response.status_code, body)
+            status = response.status_code
+            raise PranetError(f"HTTP {status} from {path}: {message}", status, body, _retry_after(response))
         try:
             body = response.json()
         except ValueError as e:
@@ -239,3 +255,22 @@ class PranetClient:
         }
         payload.update({k: v for k, v in options.items() if v is not None})
         return RegistrationResult.from_json(self._request("POST", "/register", json=payload))
+
+    def register_many(
+        self,
+        pairs: str | os.PathLike[str] | Sequence[Pair],
+        out: str | os.PathLike[str],
+        concurrency: int = 4,
+        **kwargs: Any,
+    ) -> BatchSummary:
+        """Register every pair of a CSV file (columns ``source``, ``target``; optional ``id``, ``T_target_source``)
+        into the JSON-lines file ``out``, ``concurrency`` pairs at a time; resumable (ids already in ``out`` are
+        skipped); retried with backoff on 502/503 and connection errors, never on other errors.
+
+        ``kwargs``: ``retry`` (a ``RetryPolicy``; default: 5 retries), ``shard_index``/``shard_count``,
+        ``retry_errors``, ``progress``, ``jitter_seed``, and the options of ``register`` (``icp``, ``init``,
+        ``policy``, ...). See ``pranet.client.batch``.
+        """
+        from pranet.client.batch import register_many
+
+        return register_many(self, pairs, out, concurrency, **kwargs)
