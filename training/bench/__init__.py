@@ -29,6 +29,9 @@ Examples::
     pranet-bench                                   # 200 pairs per setting, everything (~20 min)
     pranet-bench --pairs 20 --throughput-seconds 10 --markdown docs/bench.md
     pranet-bench --pairs 5 --methods pranet-v1,pranet-v2,icp --throughput-seconds 0 --ort-calls 0
+
+``pranet-bench scans [PAIRS.csv]`` is the real-scan benchmark: the service's default request beside classical
+peers on scan pairs with a ground truth (``training.bench.scans``).
 """
 
 from pranet.training.bench.catalog import METHODS

@@ -43,7 +43,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         prog="pranet-bench",
         description=package_doc(),
-        epilog="See docs/PERFORMANCE.md for the method and the measured tables.",
+        epilog="See docs/PERFORMANCE.md for the method and the measured tables. The real-scan benchmark is a "
+        "subcommand: pranet-bench scans [PAIRS.csv] (pranet-bench scans --help).",
     )
     p.add_argument("--pairs", type=int, default=200, help="pairs per setting (default 200)")
     p.add_argument("--settings", default=",".join(DEFAULT_SETTINGS), help="comma-separated (default noisy,partial)")
