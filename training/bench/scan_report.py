@@ -144,8 +144,10 @@ def _pairs_table(result: dict[str, Any]) -> str:
 
 
 def _records_table(result: dict[str, Any]) -> str:
+    pair_index = {p["id"]: i for i, p in enumerate(result["pairs"])}
+    method_index = {m: i for i, m in enumerate(result["summary"])}
     rows = []
-    for r in sorted(result["records"], key=lambda r: [p["id"] for p in result["pairs"]].index(r["pair"])):
+    for r in sorted(result["records"], key=lambda r: (pair_index[r["pair"]], method_index[r["method"]])):
         if r["error"] is not None:
             right = f"✗ ({r['error'][:60]})"
         else:
