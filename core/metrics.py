@@ -36,7 +36,7 @@ def _nn_sq_dist(a: Array, b: Array) -> Array:
     every method and the Fig. 5 Chamfer curve at every step: brute force was two thirds of its time), else
     chunked numpy brute force.
     """
-    from pranet.core.confidence import nearest_distances
+    from pranet.core.nearest import nearest_distances
 
     return nearest_distances(a, b) ** 2
 

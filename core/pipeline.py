@@ -1,52 +1,53 @@
-"""The registration pipeline, runtime-agnostic: clouds in -> prepare -> agent (with exit checks) -> rank ->
-refine -> rescue -> back to world units.
+"""The registration pipeline, runtime-agnostic: a set of candidates ranked by one confidence.
+
+    clouds in -> prepare (check, cap, unit frame, resolution) -> agent from the input pose (exit checks)
+      -> global match (features + robust solver) -> rescues (agent restarts, wide ICP) -> back to world units
 
 ``register`` runs one registration as a ``RegistrationConfig`` (``core.registration_config``) says: the paper's
-PRANet-v1 (no ICP), PRANet-v2 (+ ICP), or the service's default (exit checks and rescues). The reward model and
-the ICP functions are injected (``pranet.engine`` builds them from the config), so this module stays numpy-only.
+PRANet-v1 (the agent alone), PRANet-v2 (+ ICP), or the service's default. Cheap candidates come first and a
+confident result ends the request: the agent's exit checks refine its estimate with ICP at the data's own
+resolution after 20 and 40 steps and stop once ``converged``; only an unconfident result pays for the global
+match, and only a still unconfident one for the rescues. Every candidate is refined by the same ICP and scored by
+the same ``Confidence`` (``core.confidence``); the most confident wins and the response names it.
 
-``init="identity"`` (the paper's setting) runs the agent once from the input pose. ``init="global"`` runs its
-coarse phase from ``n_starts`` well-spread start rotations at once (``core.starts``; one batched score call per
-step), the fine phase from the ``refine_top`` most confident, and refines those with ICP: for initial rotations
-beyond the 60° the model was trained on. Every result carries a ``Confidence`` (``core.confidence``),
-computed in the unit frame.
+``init="global"`` forces the wide search: the agent's coarse phase from ``n_starts`` well-spread rotations at once
+(``core.starts``; one batched score call per step), the fine phase from the ``refine_top`` most confident, and
+the global match beside them.
 
-Beyond the paper, with ICP (identity mode): exit checks refine the agent's estimate after some steps and return
-as soon as the refined result is confident (most pairs need only the coarse phase: ``docs/PERFORMANCE.md``).
-When the result stays unconfident, the rescues run: a wide-window ICP from the input pose, and the coarse phase
-again from six starts 30° around the best estimate (batched); the most confident result wins.
+The reward model, the ICP and the global match are injected (``pranet.engine`` builds them), so this module stays
+numpy-only. The state of one registration lives on a ``RegistrationContext``; the stages' times on its
+``StageTimer``.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
-from functools import cached_property
-from typing import Protocol
+from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import numpy.typing as npt
 
-from pranet.core.actions import ActionTable
 from pranet.core.agent import AgentResult, BatchScoreFn, ScoreFn, batch_from_single, run_agent, run_agent_batch
-from pranet.core.confidence import Confidence, ConfidenceEstimator
-from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
+from pranet.core.confidence import ConfidenceEstimator
 from pranet.core.registration_config import PAPER_V1, RegistrationConfig
-from pranet.core.se3 import Array
+from pranet.core.registration_context import RegistrationContext, Scorer, prepare
+from pranet.core.registration_types import (
+    AGENT,
+    GLOBAL_MATCH,
+    RESTARTS,
+    WIDE_ICP,
+    GlobalMatchFn,
+    IcpFn,
+    Registration,
+)
+from pranet.core.stage_timer import StageTimer
 from pranet.core.starts import local_rotations, restart_transforms, start_rotations, start_transforms
 
-RANK_SOURCE, RANK_TARGET = 256, 1024  # subsample sizes of the quick confidence that ranks the starts
+__all__ = ["register", "prepare", "split_schedule", "batch_score_fn", "STAGES"]
 
-
-class Scorer(Protocol):
-    """What the pipeline needs of a reward model (``pranet.engine.runtime.RewardModel`` is one)."""
-
-    table: ActionTable
-    schedule: tuple[int, ...]
-    n_points: int
-
-    def score_fn(self, target: npt.ArrayLike) -> ScoreFn: ...
+# The stages of ``Registration.timing_ms`` (exclusive: ICP and confidence calls count as themselves wherever they
+# run), which with ``other`` (``core.stage_timer``) add up to its ``total``.
+STAGES = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence", "global_match", "rescue")
 
 
 def batch_score_fn(scorer: Scorer, target: npt.ArrayLike) -> BatchScoreFn:
@@ -54,17 +55,6 @@ def batch_score_fn(scorer: Scorer, target: npt.ArrayLike) -> BatchScoreFn:
     starts), else its ``score_fn`` called once per start."""
     batched = getattr(scorer, "batch_score_fn", None)
     return batched(target) if batched is not None else batch_from_single(scorer.score_fn(target))
-
-
-@dataclass(frozen=True)
-class IcpResult:
-    transform: Array  # (4, 4) T_target_source, unit frame
-    fitness: float
-    inlier_rmse: float  # unit frame
-
-
-# icp(source_unit (N, 3), target_unit (M, 3), init T_target_source (4, 4)) -> IcpResult, all in the unit frame.
-IcpFn = Callable[[Array, Array, Array], IcpResult]
 
 
 def split_schedule(schedule: Sequence[int], checks: Sequence[int]) -> list[tuple[int, ...]]:
@@ -89,146 +79,6 @@ def split_schedule(schedule: Sequence[int], checks: Sequence[int]) -> list[tuple
     return segments
 
 
-@dataclass
-class Registration:
-    T_target_source: Array  # (4, 4) the result in world units: target ≈ R @ source + t
-    agent_T_target_source: Array  # (4, 4) the agent's own estimate (before ICP), world units
-    trajectory: list[tuple[int, str, Array]]  # (step, action name, T_target_source in world units)
-    icp: IcpResult | None  # in world units (inlier_rmse scaled back)
-    timing_ms: dict[str, float] = field(default_factory=dict)
-    agent: AgentResult | None = None
-    normalization: Normalization | None = None
-    n_source: int = 0
-    n_target: int = 0
-    confidence: Confidence | None = None  # of ``T_target_source``, unit frame
-    init: str = "identity"
-    initial_transform: Array = field(default_factory=lambda: np.eye(4))  # (4, 4) the agent's start, world units
-    start_index: int = 0  # global mode: which start rotation won
-    start_scores: list[float] = field(default_factory=list)  # global mode: each start's agent-only confidence
-    checks: list[tuple[int, float]] = field(default_factory=list)  # exit checks: (agent steps, ICP confidence)
-    rescued: str | None = None  # which rescue won over the agent's result: "wide_icp" or "restarts"
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """One estimate competing to be the result, in the unit frame."""
-
-    confidence: Confidence
-    agent_index: int  # which agent run (start) it came from
-    T_unit: Array  # (4, 4) T_target_source, unit frame
-    refined: IcpResult | None  # the ICP that produced it, if any
-    rescued: str | None = None
-
-
-def _better(best: Candidate | None, other: Candidate) -> Candidate:
-    return other if best is None or other.confidence.score > best.confidence.score else best
-
-
-@dataclass
-class _Prepared:
-    """The clouds of one registration: checked, in the unit frame, and resampled to the model's N."""
-
-    source: Array  # (Ns, 3) as given
-    target: Array  # (Nt, 3)
-    norm: Normalization
-    src_unit: Array  # (Ns, 3)
-    tgt_unit: Array  # (Nt, 3)
-    src_n: Array  # (N, 3)
-    tgt_n: Array  # (N, 3)
-
-    @cached_property
-    def ranker(self) -> ConfidenceEstimator:
-        """The quick confidence (subsampled target) that ranks starts: built once, on first use."""
-        return ConfidenceEstimator(self.tgt_unit, max_target=RANK_TARGET)
-
-
-@dataclass
-class _AgentRuns:
-    starts: Array  # (B, 4, 4) unit-frame start transforms
-    agents: list[AgentResult]
-    checked: list[Candidate]  # exit checks' refined estimates, in step order
-    checks: list[tuple[int, float]]
-    check_ms: list[float]  # [ICP, confidence] time spent in the exit checks
-
-
-def prepare(source: npt.ArrayLike, target: npt.ArrayLike, n_points: int, rng: np.random.Generator) -> _Prepared:
-    """Validate, normalise to the unit frame (one similarity for both clouds), resample to the model's N."""
-    src = check_cloud(source, "source")
-    tgt = check_cloud(target, "target")
-    norm = fit_normalization(src, tgt)
-    src_unit, tgt_unit = norm.to_unit(src), norm.to_unit(tgt)
-    return _Prepared(
-        src, tgt, norm, src_unit, tgt_unit, resample(src_unit, n_points, rng), resample(tgt_unit, n_points, rng)
-    )
-
-
-def run_agents(
-    p: _Prepared,
-    scorer: Scorer,
-    score_fn: ScoreFn | BatchScoreFn,
-    config: RegistrationConfig,
-    schedule: Sequence[int],
-    loop: dict,
-    estimator: ConfidenceEstimator,
-    icp: IcpFn | None,
-) -> _AgentRuns:
-    """The greedy action loop (20 coarse + 40 fine steps by default): from the input pose, with exit checks
-    when ICP is on and the config has them, or from every global start at once."""
-    if config.init == "global":
-        starts = start_transforms(start_rotations(config.n_starts), p.src_n.mean(axis=0), p.tgt_unit.mean(axis=0))
-        return _AgentRuns(starts, run_global(p, scorer, score_fn, config, schedule, loop, starts), [], [], [0.0, 0.0])
-    starts = np.eye(4)[None]  # (1, 4, 4)
-    if icp is None or not config.exit_checks:
-        return _AgentRuns(
-            starts, [run_agent(p.src_n, p.tgt_n, score_fn, scorer.table, schedule, **loop)], [], [], [0.0, 0.0]
-        )
-    runs = _AgentRuns(starts, [AgentResult(transform=np.eye(4))], [], [], [0.0, 0.0])
-    agent = runs.agents[0]
-    segments = split_schedule(schedule, config.exit_checks)
-    for k, segment in enumerate(segments):
-        part = run_agent(p.src_n, p.tgt_n, score_fn, scorer.table, segment, initial_transform=agent.transform, **loop)
-        extend(agent, part)
-        if k == len(segments) - 1:
-            break
-        # The exit check: refine now and stop if confident.
-        t_icp = time.perf_counter()
-        refined = icp(p.src_unit, p.tgt_unit, agent.transform)
-        t_conf = time.perf_counter()
-        confidence = estimator.evaluate(p.src_unit, refined.transform)
-        runs.check_ms[0] += (t_conf - t_icp) * 1e3
-        runs.check_ms[1] += (time.perf_counter() - t_conf) * 1e3
-        runs.checked.append(Candidate(confidence, 0, refined.transform, refined))
-        runs.checks.append((len(agent.steps), confidence.score))
-        if confidence.score >= config.threshold:
-            break
-    return runs
-
-
-def run_global(
-    p: _Prepared,
-    scorer: Scorer,
-    score_fn: ScoreFn | BatchScoreFn,
-    config: RegistrationConfig,
-    schedule: Sequence[int],
-    loop: dict,
-    starts: Array,
-) -> list[AgentResult]:
-    """Global mode: the coarse phase from every start at once (batched), then the rest of the schedule from the
-    ``refine_top`` most confident only: the fine phase polishes, it does not decide which start wins, and each
-    start costs a score call per step. The others keep their coarse-phase result."""
-    segments = split_schedule(schedule, (schedule[0],))
-    agents = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, starts, segments[0], **loop)
-    if len(segments) == 1:
-        return agents
-    order = np.argsort(-np.asarray(quick_scores(p, agents)), kind="stable")
-    keep = [int(b) for b in order[: config.refine_top]]
-    pose = np.stack([agents[b].transform for b in keep])
-    more = run_agent_batch(p.src_n, p.tgt_n, score_fn, scorer.table, pose, segments[1], **loop)
-    for b, part in zip(keep, more, strict=True):
-        extend(agents[b], part)
-    return agents
-
-
 def extend(agent: AgentResult, part: AgentResult) -> None:
     """Append ``part``, run from where ``agent`` ended, to ``agent`` (steps numbered on)."""
     n = len(agent.steps)
@@ -237,85 +87,113 @@ def extend(agent: AgentResult, part: AgentResult) -> None:
     agent.transform = part.transform
 
 
-def quick_scores(p: _Prepared, agents: Sequence[AgentResult]) -> list[float]:
-    """A quick confidence of each agent's result (subsampled clouds): to rank starts before refining them."""
-    return [p.ranker.evaluate(p.src_unit, a.transform, max_source=RANK_SOURCE).score for a in agents]
+# The stages. Each reads the context and offers its candidates to it.
 
 
-def rank_starts(
-    p: _Prepared, agents: Sequence[AgentResult], config: RegistrationConfig, refining: bool
-) -> tuple[list[int], list[float]]:
-    """Global mode: the agents' results ranked by a quick confidence -> (the ones to refine, every start's score)."""
-    if config.init != "global":
-        return [0], []
-    scores = quick_scores(p, agents)
-    order = np.argsort(-np.asarray(scores), kind="stable")
-    return [int(b) for b in order[: config.refine_top if refining else 1]], scores
+def segments_between(schedule: Sequence[int], checks: Sequence[int], start: int, end: int) -> list[tuple[int, ...]]:
+    """The segments of ``schedule`` covering steps ``[start, end)``, cut after each cumulative count in ``checks``.
+
+    ``segments_between((20, 40), (20, 40), 20, 60) == [(0, 20), (0, 20)]``."""
+    total = sum(schedule)
+    cuts = sorted({int(x) for x in (*checks, start, end) if 0 < int(x) < total})
+    segments = split_schedule(schedule, cuts)
+    bounds = list(zip([0, *cuts], [*cuts, total], strict=True))
+    return [seg for seg, (lo, hi) in zip(segments, bounds, strict=True) if start <= lo and hi <= end]
 
 
-def refine(
-    p: _Prepared,
-    runs: _AgentRuns,
-    candidates: Sequence[int],
-    estimator: ConfidenceEstimator,
-    icp: IcpFn | None,
-) -> tuple[Candidate, float]:
-    """ICP on the candidates (PRANet-v2); the most confident of them and of the exit checks wins.
-    Returns it and the ICP time (ms). When the last exit check stopped the loop, it is the final refinement."""
-    best: Candidate | None = None
-    for c in runs.checked:
-        best = _better(best, c)
-    icp_ms = 0.0
-    stopped_at_check = bool(runs.checks) and runs.checks[-1][0] == len(runs.agents[0].steps)
-    for b in [] if stopped_at_check else candidates:
-        t_icp = time.perf_counter()
-        refined = icp(p.src_unit, p.tgt_unit, runs.agents[b].transform) if icp is not None else None
-        icp_ms += (time.perf_counter() - t_icp) * 1e3
-        T_unit = refined.transform if refined is not None else runs.agents[b].transform
-        best = _better(best, Candidate(estimator.evaluate(p.src_unit, T_unit), b, T_unit, refined))
-    assert best is not None
-    return best, icp_ms
+def _scheduled_ends(start: int, segments: Sequence[tuple[int, ...]]) -> list[int]:
+    """The cumulative scheduled step count at the end of each segment (early stops may take fewer steps)."""
+    return [start + int(n) for n in np.cumsum([sum(seg) for seg in segments])]
 
 
-def rescue(
-    p: _Prepared,
-    best: Candidate,
-    runs: _AgentRuns,
-    scorer: Scorer,
-    config: RegistrationConfig,
-    schedule: Sequence[int],
-    loop: dict,
-    estimator: ConfidenceEstimator,
-    icp: IcpFn,
-    rescue_icp: IcpFn | None,
-) -> Candidate:
-    """Rescues of an unconfident result (beyond the paper): a wide ICP from the input pose, then the coarse phase
-    from six starts 30° around the best estimate. Both run when suspect: a wide ICP may be confidently wrong.
-    The restarts' agent runs are appended to ``runs``."""
-    if rescue_icp is not None:
-        wide = icp(p.src_unit, p.tgt_unit, rescue_icp(p.src_unit, p.tgt_unit, np.eye(4)).transform)
-        wide_c = Candidate(
-            estimator.evaluate(p.src_unit, wide.transform), best.agent_index, wide.transform, wide, "wide_icp"
-        )
-        best = _better(best, wide_c)
-    if config.rescue_restarts:
-        restarts = restart_transforms(best.T_unit, p.src_n.mean(axis=0), local_rotations())
-        coarse = (schedule[0],) + (0,) * (len(schedule) - 1)
-        batch = batch_score_fn(scorer, p.tgt_n)
-        more = run_agent_batch(p.src_n, p.tgt_n, batch, scorer.table, restarts, coarse, **loop)
-        quick = quick_scores(p, more)
-        for k in np.argsort(-np.asarray(quick), kind="stable")[: config.refine_top]:
-            refined = icp(p.src_unit, p.tgt_unit, more[k].transform)
-            index = len(runs.agents) + int(k)
-            best = _better(
-                best,
-                Candidate(
-                    estimator.evaluate(p.src_unit, refined.transform), index, refined.transform, refined, "restarts"
-                ),
+def agent_from_input_pose(ctx: RegistrationContext, score_fn: ScoreFn, until: int | None = None) -> None:
+    """The greedy action loop (20 coarse + 40 fine steps by default) from the input pose, or on from where an
+    earlier call stopped, up to ``until`` steps in all (``None``: the whole schedule). With ICP and exit checks,
+    the estimate is refined and scored after those step counts, and the loop stops once confident; the end of
+    the schedule is always refined and scored."""
+    c = ctx.clouds
+    if not ctx.agents:
+        ctx.agents.append(AgentResult(transform=np.eye(4)))
+    agent = ctx.agents[0]
+    total = sum(ctx.schedule)
+    end = total if until is None else min(until, total)
+    checks = set(ctx.config.exit_checks) if ctx.icp is not None else set()
+    segments = segments_between(ctx.schedule, sorted(checks), ctx.agent_scheduled, end)
+    for segment, scheduled in zip(segments, _scheduled_ends(ctx.agent_scheduled, segments), strict=True):
+        with ctx.timer.stage("agent_steps"):
+            part = run_agent(
+                c.src_n, c.tgt_n, score_fn, ctx.scorer.table, segment, initial_transform=agent.transform, **ctx.loop
             )
-        runs.agents.extend(more)
-        runs.starts = np.concatenate([runs.starts, restarts])
-    return best
+        extend(agent, part)
+        ctx.agent_scheduled = scheduled
+        if scheduled in checks and scheduled < total:  # an exit check
+            checked = ctx.offer(AGENT, agent.transform, agent_index=0)
+            ctx.checks.append((len(agent.steps), checked.confidence.score))
+            if ctx.confident:
+                return
+    if ctx.agent_scheduled == total:
+        ctx.offer(AGENT, agent.transform, agent_index=0)
+
+
+def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -> None:
+    """Global mode: the coarse phase from every start at once (batched), then the rest of the schedule from the
+    ``refine_top`` most confident only: the fine phase polishes, it does not decide which start wins, and each
+    start costs a score call per step. The others keep their coarse-phase result."""
+    c, config = ctx.clouds, ctx.config
+    ctx.starts = start_transforms(start_rotations(config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
+    segments = split_schedule(ctx.schedule, (ctx.schedule[0],))
+    with ctx.timer.stage("agent_steps"):
+        agents = run_agent_batch(c.src_n, c.tgt_n, score_fn, ctx.scorer.table, ctx.starts, segments[0], **ctx.loop)
+    ctx.agents = agents
+    keep = _most_confident(ctx, agents, config.refine_top)
+    if len(segments) > 1:
+        pose = np.stack([agents[b].transform for b in keep])
+        with ctx.timer.stage("agent_steps"):
+            more = run_agent_batch(c.src_n, c.tgt_n, score_fn, ctx.scorer.table, pose, segments[1], **ctx.loop)
+        for b, part in zip(keep, more, strict=True):
+            extend(agents[b], part)
+    ctx.start_scores = ctx.quick_scores(agents)
+    ranked = np.argsort(-np.asarray(ctx.start_scores), kind="stable")
+    for b in ranked[: config.refine_top if ctx.icp is not None else 1]:
+        ctx.offer(AGENT, agents[int(b)].transform, agent_index=int(b))
+
+
+def _most_confident(ctx: RegistrationContext, agents: Sequence[AgentResult], k: int) -> list[int]:
+    scores = np.asarray(ctx.quick_scores(agents))
+    return [int(b) for b in np.argsort(-scores, kind="stable")[:k]]
+
+
+def global_match(ctx: RegistrationContext) -> None:
+    """The classical global candidate: features matched at the data's resolution and a robust solver, from any
+    initial rotation, then the same ICP. Seeded: the same request gives the same answer."""
+    assert ctx.global_match is not None
+    c = ctx.clouds
+    T = ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed)
+    if T is not None:
+        ctx.offer(GLOBAL_MATCH, T)
+
+
+def rescue(ctx: RegistrationContext) -> None:
+    """Rescues of a still unconfident result (beyond the paper): the agent's coarse phase again from six starts
+    30° around the best estimate (batched; the ``refine_top`` most promising are refined), and a wide-window ICP
+    from the input pose. Both run: a wide ICP may be confidently wrong."""
+    c, config = ctx.clouds, ctx.config
+    if config.rescue_restarts and ctx.best is not None:
+        restarts = restart_transforms(ctx.best.T_unit, c.src_n.mean(axis=0), local_rotations())
+        coarse = (ctx.schedule[0],) + (0,) * (len(ctx.schedule) - 1)
+        with ctx.timer.stage("target_embedding"):
+            batch = batch_score_fn(ctx.scorer, c.tgt_n)
+        with ctx.timer.stage("agent_steps"):
+            more = run_agent_batch(c.src_n, c.tgt_n, batch, ctx.scorer.table, restarts, coarse, **ctx.loop)
+        first = len(ctx.agents)
+        ctx.agents.extend(more)
+        ctx.starts = np.concatenate([ctx.starts, restarts])
+        for k in _most_confident(ctx, more, config.refine_top):
+            ctx.offer(RESTARTS, more[k].transform, agent_index=first + k)
+    if ctx.wide_icp is not None and not ctx.confident:
+        with ctx.timer.stage("icp"):
+            wide = ctx.wide_icp(c.src_unit, c.tgt_unit, np.eye(4), c.resolution)
+        ctx.offer(WIDE_ICP, wide.transform)
 
 
 def register(
@@ -327,77 +205,94 @@ def register(
     icp: IcpFn | None = None,
     rescue_icp: IcpFn | None = None,
     deadline: float | None = None,
+    global_match_fn: GlobalMatchFn | None = None,
+    seed: int = 0,
 ) -> Registration:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)`` (any units) as ``config`` says; returns
     ``T_target_source`` (target ≈ R @ source + t) and the agent's own estimate, both in world units.
 
     ``icp``: the refinement (``None`` = PRANet-v1, whatever ``config.icp_stages`` say: the engine builds it from
-    them); ``rescue_icp``: the wide ICP of the rescue (``None`` = off). Raises ``DegenerateCloudError`` (a
-    ``ValueError``) for unusable input and ``AgentTimeout`` past ``deadline`` (``time.monotonic()`` seconds).
+    them); ``rescue_icp``: the wide ICP of the rescue; ``global_match_fn``: the classical global candidate
+    (``None`` = off; it runs only when ``config.global_match``); ``seed``: the global match's. Raises
+    ``DegenerateCloudError`` (a ``ValueError``) for unusable input and ``AgentTimeout`` past ``deadline``
+    (``time.monotonic()`` seconds).
     """
-    timing: dict[str, float] = {}
-    t0 = time.perf_counter()
-    # 1. Prepare: validate, unit frame, resample.
-    p = prepare(source, target, scorer.n_points, rng)
-    schedule = config.schedule or scorer.schedule
-    t1 = time.perf_counter()
-    timing["preprocess"] = (t1 - t0) * 1e3
+    timer = StageTimer(STAGES)
+    # 1. Prepare: validate, cap, unit frame, resolution, resample.
+    with timer.stage("preprocess"):
+        clouds = prepare(source, target, scorer.n_points, rng)
+        estimator = ConfidenceEstimator(clouds.src_unit, clouds.tgt_unit, clouds.resolution, config.threshold)
+    ctx = RegistrationContext(
+        clouds=clouds,
+        config=config,
+        scorer=scorer,
+        schedule=tuple(config.schedule or scorer.schedule),
+        rng=rng,
+        seed=seed,
+        timer=timer,
+        estimator=estimator,
+        icp=icp,
+        wide_icp=rescue_icp if icp is not None else None,
+        global_match=global_match_fn if icp is not None and config.global_match else None,
+        deadline=deadline,
+    )
+    wide_search = config.init == "global"
     # 2. Embed the target once for this registration (tiled over the starts in global mode).
-    score_fn = scorer.score_fn(p.tgt_n) if config.init == "identity" else batch_score_fn(scorer, p.tgt_n)
-    t2 = time.perf_counter()
-    timing["target_embedding"] = (t2 - t1) * 1e3
-    # 3. The agent, with exit checks.
-    loop = {"policy": config.policy, "rng": rng, "early_stop": config.early_stop, "deadline": deadline}
-    estimator = ConfidenceEstimator(p.tgt_unit, threshold=config.threshold)
-    runs = run_agents(p, scorer, score_fn, config, schedule, loop, estimator, icp)
-    t3 = time.perf_counter()
-    timing["agent_steps"] = (t3 - t2) * 1e3 - sum(runs.check_ms)
-    # 4. Rank the global starts; 5. refine the best with ICP.
-    candidates, start_scores = rank_starts(p, runs.agents, config, refining=icp is not None)
-    best, icp_ms = refine(p, runs, candidates, estimator, icp)
-    icp_ms += runs.check_ms[0]
-    # 6. Rescue an unconfident result.
-    t_rescue = time.perf_counter()
-    if icp is not None and best.confidence.score < config.threshold:
-        best = rescue(p, best, runs, scorer, config, schedule, loop, estimator, icp, rescue_icp)
-    timing["icp"] = icp_ms
-    # After the loop: everything but its ICP calls; plus the exit checks' confidence (their ICP is in icp_ms).
-    timing["confidence"] = (t_rescue - t3) * 1e3 - (icp_ms - runs.check_ms[0]) + runs.check_ms[1]
-    timing["rescue"] = (time.perf_counter() - t_rescue) * 1e3
+    with timer.stage("target_embedding"):
+        score_fn = batch_score_fn(scorer, clouds.tgt_n) if wide_search else scorer.score_fn(clouds.tgt_n)
+    if wide_search:
+        # 3. The wide search: the agent from every global start, and the global match beside it.
+        agent_from_global_starts(ctx, score_fn)
+        if ctx.global_match is not None:
+            with timer.stage("global_match"):
+                global_match(ctx)
+    else:
+        # 3. The agent from the input pose, to its first exit check (its coarse phase) when the global match may
+        # follow; 4. the global match when it is not sure; 5. the rest of the agent's schedule.
+        first_check = min(config.exit_checks, default=None) if ctx.global_match is not None else None
+        agent_from_input_pose(ctx, score_fn, until=first_check)
+        if ctx.global_match is not None and not ctx.confident:
+            with timer.stage("global_match"):
+                global_match(ctx)
+        if not ctx.confident:
+            agent_from_input_pose(ctx, score_fn)
+    # 6. The rescues of a still unconfident result.
+    if icp is not None and not wide_search and not ctx.confident:
+        with timer.stage("rescue"):
+            rescue(ctx)
     # 7. Back to world units.
-    return _to_world(p, runs, best, start_scores, config, timing, t0)
+    return to_world(ctx)
 
 
-def _to_world(
-    p: _Prepared,
-    runs: _AgentRuns,
-    best: Candidate,
-    start_scores: list[float],
-    config: RegistrationConfig,
-    timing: dict[str, float],
-    t0: float,
-) -> Registration:
-    norm = p.norm
-    agent = runs.agents[best.agent_index]
+def to_world(ctx: RegistrationContext) -> Registration:
+    """The best candidate, its agent run and the timings, in world units."""
+    c, best = ctx.clouds, ctx.best
+    assert best is not None
+    norm = c.norm
+    agent = ctx.agents[best.agent_index] if best.agent_index is not None else None
+    shown = agent or ctx.agents[0]  # a classical winner shows the agent's own run from the input pose
+    start = best.agent_index if best.agent_index is not None else 0
     T = norm.transform_to_world(best.T_unit)
     refined = best.refined
-    icp_world = IcpResult(T, refined.fitness, refined.inlier_rmse / norm.scale) if refined else None
-    timing["total"] = (time.perf_counter() - t0) * 1e3
+    timing = ctx.timer.report()
     return Registration(
         T_target_source=T,
-        agent_T_target_source=norm.transform_to_world(agent.transform),
-        trajectory=[(s.step, s.name, norm.transform_to_world(s.transform)) for s in agent.steps],
-        icp=icp_world,
+        agent_T_target_source=norm.transform_to_world(shown.transform),
+        trajectory=[(s.step, s.name, norm.transform_to_world(s.transform)) for s in shown.steps],
+        icp=replace(refined, transform=T, inlier_rmse=refined.inlier_rmse / norm.scale) if refined else None,
         timing_ms=timing,
-        agent=agent,
+        agent=shown,
         normalization=norm,
-        n_source=len(p.source),
-        n_target=len(p.target),
+        n_source=c.n_source,
+        n_target=c.n_target,
         confidence=best.confidence,
-        init=config.init,
-        initial_transform=norm.transform_to_world(runs.starts[best.agent_index]),
-        start_index=best.agent_index,
-        start_scores=start_scores,
-        checks=runs.checks,
-        rescued=best.rescued,
+        init=ctx.config.init,
+        initial_transform=norm.transform_to_world(ctx.starts[start]),
+        start_index=start,
+        start_scores=ctx.start_scores,
+        checks=ctx.checks,
+        candidate=best.name,
+        candidates=dict(ctx.tried),
+        resolution=c.resolution.scaled(1.0 / norm.scale),
+        n_used=(len(c.src_unit), len(c.tgt_unit)),
     )

@@ -16,15 +16,21 @@ from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
 
 POINT_TO_POINT, POINT_TO_PLANE = "point_to_point", "point_to_plane"
 ICP_METHODS = (POINT_TO_POINT, POINT_TO_PLANE)
-IcpStage = tuple[str, float]  # (estimation method, max correspondence distance in the unit frame)
+IcpStage = tuple[str, float]  # (estimation method, max correspondence distance in spacings of the data)
 INITS = ("identity", "global")
 POLICIES = ("deterministic", "stoch1", "stoch2")
 
-# Unit-frame windows (clouds scaled into the unit sphere): the first pass within 0.1, a second one within the
-# baselines' 0.05 from its result (docs/DESIGN.md, "ICP of PRANet-v2").
-ICP_WINDOW = 0.1
-ICP_REFINE_WINDOW = 0.05
-RESCUE_WINDOW = 0.5  # the rescue's wide ICP from the input pose (the ICP baseline's window)
+# ICP windows are multiples of the data's spacing (``core.resolution``): the median nearest-neighbour distance,
+# so they mean the same on a 0.5 mm bunny scan, a 6 mm RGB-D fragment and a ModelNet40 shape (where 4 and 2
+# spacings are about the 0.1 and 0.05 unit-frame windows PRANet-v2 used before: docs/DESIGN.md, "ICP of
+# PRANet-v2" and "Resolution first"). A first pass at 2 voxels (8 spacings) widens the basin for the agent's and
+# the global match's estimates, which are degrees off on real scans.
+ICP_WIDE_WINDOW = 8.0
+ICP_WINDOW = 4.0
+ICP_REFINE_WINDOW = 2.0
+# The rescue's wide ICP from the input pose: a window of half the unit sphere (the ICP baseline's), a fraction of
+# the clouds' extent rather than of their spacing.
+RESCUE_WINDOW = 0.5
 
 
 def check_icp_stages(stages: tuple[IcpStage, ...]) -> None:
@@ -41,16 +47,19 @@ def two_windows(
     return ((method, window), (method, refine_window))
 
 
-# Point-to-plane reaches the truth from farther off; point-to-point finishes more precisely on noisy normals.
-DEFAULT_ICP_STAGES: tuple[IcpStage, ...] = two_windows(POINT_TO_PLANE) + two_windows(POINT_TO_POINT)
+# Point-to-plane at 8, 4 and 2 spacings: on the real scans as precise as with a point-to-point finish, in fewer
+# iterations (docs/DESIGN.md, "ICP at the data's resolution").
+DEFAULT_ICP_STAGES: tuple[IcpStage, ...] = ((POINT_TO_PLANE, ICP_WIDE_WINDOW),) + two_windows(POINT_TO_PLANE)
 
 
 @dataclass(frozen=True)
 class RegistrationConfig:
     """Everything about a registration but the clouds, the model and the seed.
 
-    ``icp_stages``: the refinement, one Open3D ICP pass per ``(method, window)`` from the previous result; ``()``
-    = no ICP (PRANet-v1). With ICP: ``exit_checks`` refine after those cumulative agent steps and stop once the
+    ``icp_stages``: the refinement, one Open3D ICP pass per ``(method, window in spacings)`` from the previous
+    result; ``()`` = no ICP (PRANet-v1). ``global_match``: with ICP, a classical global candidate (features and a
+    robust solver) when the agent is not confident, and always with ``init="global"``. With ICP:
+    ``exit_checks`` refine after those cumulative agent steps and stop once the
     result is confident (identity mode); ``rescue_window`` (or ``None``) runs a wide ICP from the input pose when
     the result stays below ``threshold``, and ``rescue_restarts`` reruns the coarse phase from six starts 30°
     around the best estimate. ``init="global"`` starts the agent from ``n_starts`` rotations and refines the
@@ -61,6 +70,7 @@ class RegistrationConfig:
     exit_checks: tuple[int, ...] = ()
     rescue_window: float | None = None
     rescue_restarts: bool = False
+    global_match: bool = False
     threshold: float = DEFAULT_THRESHOLD
     init: str = "identity"
     n_starts: int = DEFAULT_STARTS
@@ -97,5 +107,7 @@ PAPER_V1 = RegistrationConfig()
 # The paper's PRANet-v2: the agent's 60 steps, then ICP.
 PAPER_V2 = RegistrationConfig(icp_stages=DEFAULT_ICP_STAGES)
 # The service's default request: v2 with exit checks after the coarse phase and halfway through the fine one,
-# and both rescues of an unconfident result.
-SERVICE_DEFAULT = PAPER_V2.with_(exit_checks=(20, 40), rescue_window=RESCUE_WINDOW, rescue_restarts=True)
+# the global match when the agent is not sure, and both rescues of a still unconfident result.
+SERVICE_DEFAULT = PAPER_V2.with_(
+    exit_checks=(20, 40), global_match=True, rescue_window=RESCUE_WINDOW, rescue_restarts=True
+)

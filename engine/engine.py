@@ -13,11 +13,14 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from pranet.core.pipeline import IcpFn, Registration, Scorer, register
+from pranet.core.pipeline import register
 from pranet.core.registration_config import POINT_TO_POINT, SERVICE_DEFAULT, IcpStage, RegistrationConfig
+from pranet.core.registration_context import Scorer
+from pranet.core.registration_types import GlobalMatchFn, IcpFn, Registration
+from pranet.engine.global_match import global_match as default_global_match
 from pranet.engine.icp import make_icp
 
-IcpFactory = Callable[[tuple[IcpStage, ...]], IcpFn]
+IcpFactory = Callable[..., IcpFn]  # (stages, window_unit=...) -> IcpFn
 
 
 class Engine:
@@ -25,10 +28,16 @@ class Engine:
     stages, made by ``icp_factory`` (Open3D's, by default) on first use and kept (each caches its last target's
     preparation)."""
 
-    def __init__(self, scorer: Scorer, icp_factory: IcpFactory = make_icp) -> None:
+    def __init__(
+        self,
+        scorer: Scorer,
+        icp_factory: IcpFactory = make_icp,
+        global_match: GlobalMatchFn = default_global_match,
+    ) -> None:
         self.scorer = scorer
         self._icp_factory = icp_factory
-        self._icps: dict[tuple[IcpStage, ...], IcpFn] = {}
+        self._global_match = global_match
+        self._icps: dict[tuple[tuple[IcpStage, ...], str], IcpFn] = {}
         self._lock = threading.Lock()
 
     @classmethod
@@ -38,12 +47,13 @@ class Engine:
 
         return cls(RewardModel.load(model_dir, threads=threads, precision=precision))
 
-    def icp(self, stages: tuple[IcpStage, ...]) -> IcpFn:
+    def icp(self, stages: tuple[IcpStage, ...], window_unit: str = "spacing") -> IcpFn:
         """The ICP function running ``stages`` (built once per distinct stages)."""
         with self._lock:
-            if stages not in self._icps:
-                self._icps[stages] = self._icp_factory(stages)
-            return self._icps[stages]
+            key = (stages, window_unit)
+            if key not in self._icps:
+                self._icps[key] = self._icp_factory(stages, window_unit=window_unit)
+            return self._icps[key]
 
     def warm_up(self, config: RegistrationConfig = SERVICE_DEFAULT) -> None:
         """Build ``config``'s ICP functions now (imports Open3D) rather than in the first request."""
@@ -53,7 +63,7 @@ class Engine:
         icp = self.icp(config.icp_stages) if config.refines else None
         wide = None
         if icp is not None and config.rescue_window is not None:
-            wide = self.icp(((POINT_TO_POINT, config.rescue_window),))
+            wide = self.icp(((POINT_TO_POINT, config.rescue_window),), window_unit="extent")
         return icp, wide
 
     def register(
@@ -63,12 +73,24 @@ class Engine:
         config: RegistrationConfig = SERVICE_DEFAULT,
         rng: np.random.Generator | int = 0,
         deadline: float | None = None,
+        seed: int = 0,
     ) -> Registration:
         """Register ``source`` onto ``target`` (any common units): ``T_target_source``, target ≈ R @ source + t.
 
         ``rng``: the generator of the resampling and the stochastic policies (or its seed); ``deadline``:
-        ``time.monotonic()`` seconds, past which the agent raises ``AgentTimeout``.
+        ``time.monotonic()`` seconds, past which the agent raises ``AgentTimeout``; ``seed``: the global match's.
         """
         icp, wide = self._refinement(config)
         generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-        return register(source, target, self.scorer, generator, config, icp=icp, rescue_icp=wide, deadline=deadline)
+        return register(
+            source,
+            target,
+            self.scorer,
+            generator,
+            config,
+            icp=icp,
+            rescue_icp=wide,
+            deadline=deadline,
+            global_match_fn=self._global_match,
+            seed=seed,
+        )

@@ -1,6 +1,10 @@
 """ICP refinement with Open3D (PRANet-v2), in the model's unit frame: ``make_icp(stages)`` -> an ``IcpFn``.
 
-The stages are data of ``core.registration_config``; ``pranet.engine.Engine`` makes one function per config."""
+The stages are data of ``core.registration_config``; ``pranet.engine.Engine`` makes one function per config.
+Every scale comes from the data's resolution (``core.resolution``), passed in with each call: the windows are
+multiples of its spacing (or, for the rescue's wide ICP, fractions of the unit sphere), the target is
+voxel-downsampled at two spacings when large, and its normals come from its neighbours within the resolution's
+normal radius."""
 
 from __future__ import annotations
 
@@ -9,8 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pranet.core.confidence import subsample
-from pranet.core.pipeline import IcpResult
+from pranet.core.nearest import subsample
 from pranet.core.registration_config import (
     DEFAULT_ICP_STAGES,
     POINT_TO_PLANE,
@@ -18,15 +21,16 @@ from pranet.core.registration_config import (
     IcpStage,
     check_icp_stages,
 )
+from pranet.core.registration_types import IcpResult
+from pranet.core.resolution import NORMAL_MAX_NN, Resolution
 from pranet.core.se3 import Array
 
-NORMAL_RADIUS = 0.4  # unit frame; target normals (point-to-plane): PCA over at most NORMAL_MAX_NN neighbours
-NORMAL_MAX_NN = 30
-DEFAULT_VOXEL = 0.01  # downsample larger targets before ICP
+WINDOW_UNITS = ("spacing", "extent")  # ICP windows in spacings of the data, or in the unit frame (the extent)
+TARGET_VOXEL_SPACINGS = 2.0  # larger targets are voxel-downsampled at this many spacings before ICP
 MAX_POINTS_BEFORE_VOXEL = 20000
 # ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed random
 # subset is faster on large scans and no less accurate than a voxel grid (docs/DESIGN.md, "ICP on real scans").
-MAX_SOURCE_POINTS = 5000
+MAX_SOURCE_POINTS = 2000
 
 
 def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
@@ -37,12 +41,17 @@ def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
     return pc
 
 
-def make_icp(stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES, max_iterations: int = 50):  # -> IcpFn
-    """An ``IcpFn`` running Open3D's ICP from the agent's estimate, one pass per ``(method, max_distance)``
-    stage, each from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 0.1 and 0.05, then
-    point-to-point at 0.1 and 0.05). The target's preparation (voxel grid, normals) is cached per content."""
+def make_icp(
+    stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES, max_iterations: int = 30, window_unit: str = "spacing"
+):  # -> IcpFn
+    """An ``IcpFn`` running Open3D's ICP from an estimate, one pass per ``(method, max_distance)`` stage, each
+    from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 8, 4 and 2 spacings).
+    ``window_unit``: the stages' distances are in spacings of the data (``"spacing"``) or
+    in the unit frame (``"extent"``). The target's preparation (voxel grid, normals) is cached per content."""
     import open3d as o3d
 
+    if window_unit not in WINDOW_UNITS:
+        raise ValueError(f"window_unit must be one of {WINDOW_UNITS}, got {window_unit!r}")
     stages = tuple((str(m), float(d)) for m, d in stages)
     if not stages:
         raise ValueError("ICP needs at least one stage")
@@ -57,26 +66,30 @@ def make_icp(stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES, max_iterations: in
 
     last: list[tuple[bytes, object]] = []  # the last target prepared: (fingerprint, open3d cloud)
 
-    def prepared_target(target: Array):  # -> open3d.geometry.PointCloud, down-sampled, with normals if needed
-        # One registration refines against the same target several times (exit checks, rescues); its normals
-        # cost 35-45 ms on a 15k-point scan. The fingerprint is the content (shape and bytes), not the object.
+    def prepared_target(target: Array, resolution: Resolution):  # -> open3d.geometry.PointCloud
+        # One registration refines against the same target several times (exit checks, candidates); its normals
+        # cost 35-45 ms on a 15k-point scan. The fingerprint is the content (shape and bytes) and the resolution.
         t = np.ascontiguousarray(target, dtype=np.float64)
-        key = hashlib.blake2b(t.tobytes(), digest_size=16, person=str(t.shape).encode()[:16]).digest()
+        digest = hashlib.blake2b(t.tobytes(), digest_size=16, person=str(t.shape).encode()[:16])
+        digest.update(np.float64(resolution.spacing).tobytes())
+        key = digest.digest()
         if last and last[0][0] == key:
             return last[0][1]
         tgt = to_o3d(t)
         if len(t) > MAX_POINTS_BEFORE_VOXEL:
-            tgt = tgt.voxel_down_sample(DEFAULT_VOXEL)
+            tgt = tgt.voxel_down_sample(TARGET_VOXEL_SPACINGS * resolution.spacing)
         if needs_normals:
-            tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=NORMAL_RADIUS, max_nn=NORMAL_MAX_NN))
+            search = o3d.geometry.KDTreeSearchParamHybrid(radius=resolution.normal_radius, max_nn=NORMAL_MAX_NN)
+            tgt.estimate_normals(search)
         last[:] = [(key, tgt)]  # one entry; a concurrent caller at worst prepares the same cloud twice
         return tgt
 
-    def icp(source: Array, target: Array, init: Array) -> IcpResult:
-        src, tgt = to_o3d(subsample(source, MAX_SOURCE_POINTS, seed=3)), prepared_target(target)
+    def icp(source: Array, target: Array, init: Array, resolution: Resolution) -> IcpResult:
+        src, tgt = to_o3d(subsample(source, MAX_SOURCE_POINTS, seed=3)), prepared_target(target, resolution)
+        unit = resolution.spacing if window_unit == "spacing" else 1.0
         T = np.asarray(init, dtype=np.float64)
         for method, distance in stages:
-            r = reg.registration_icp(src, tgt, distance, T, estimations[method], criteria)
+            r = reg.registration_icp(src, tgt, distance * unit, T, estimations[method], criteria)
             T = r.transformation
         return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
 

@@ -94,9 +94,9 @@ def rotated_problem(angle_deg: float, axis=(1.0, 2.0, -1.0), scale: float = 1.0)
 
 def snapping_icp(T_unit_truth: np.ndarray, reach_deg: float):
     """An ICP stand-in: lands exactly on the truth from within ``reach_deg``, else returns its start."""
-    from pranet.core.pipeline import IcpResult
+    from pranet.core.registration_types import IcpResult
 
-    def icp(source, target, init):
+    def icp(source, target, init, resolution=None):
         close = isotropic_errors(init, T_unit_truth)[0] < reach_deg
         return IcpResult((T_unit_truth if close else init).copy(), 1.0 if close else 0.0, 0.0)
 

@@ -1,4 +1,6 @@
-"""service.icp: Open3D ICP in stages (point-to-plane at 0.1 and 0.05, then point-to-point at 0.1 and 0.05)."""
+"""engine.icp: Open3D ICP in stages whose windows are multiples of the data's spacing (point-to-plane at 8, 4 and
+2 spacings by default). The shapes here are in the unit frame; ``R`` (spacing 0.025) makes 4 spacings the 0.1 and
+2 spacings the 0.05 of the unit frame."""
 
 import numpy as np
 import pytest
@@ -15,7 +17,10 @@ from pranet.core.registration_config import (  # noqa: E402
     SERVICE_DEFAULT,
     two_windows,
 )
+from pranet.core.resolution import Resolution  # noqa: E402
 from pranet.engine.icp import make_icp  # noqa: E402
+
+R = Resolution(spacing=0.025)
 
 
 def biased_pair(seed: int = 0):
@@ -55,15 +60,29 @@ def success(T_est, T_gt) -> bool:
     return rot < SUCCESS_ROTATION_DEG and trans < SUCCESS_TRANSLATION
 
 
-def test_default_stages_are_point_to_plane_then_point_to_point():
-    assert DEFAULT_ICP_STAGES == SERVICE_DEFAULT.icp_stages == two_windows(POINT_TO_PLANE) + two_windows(POINT_TO_POINT)
-    assert two_windows(POINT_TO_POINT) == ((POINT_TO_POINT, 0.1), (POINT_TO_POINT, 0.05))
+def test_default_stages_are_point_to_plane_at_8_4_and_2_spacings():
+    assert DEFAULT_ICP_STAGES == SERVICE_DEFAULT.icp_stages == ((POINT_TO_PLANE, 8.0),) + two_windows(POINT_TO_PLANE)
+    assert two_windows(POINT_TO_POINT) == ((POINT_TO_POINT, 4.0), (POINT_TO_POINT, 2.0))
+
+
+def test_windows_follow_the_resolution_so_the_result_is_unit_free():
+    """The same problem in millimetres instead of metres, with the resolution measured in each: the same answer."""
+    source, target, T = far_noisy_pair(3, angle_deg=10.0)
+    icp = make_icp()
+    metres = icp(source, target, np.eye(4), R)
+    mm = icp(1000 * source, 1000 * target, np.eye(4), R.scaled(1000.0))
+    np.testing.assert_allclose(mm.transform[:3, :3], metres.transform[:3, :3], atol=1e-6)
+    np.testing.assert_allclose(mm.transform[:3, 3], 1000 * metres.transform[:3, 3], atol=1e-3)
+    assert success(metres.transform, T)
+    # A window in the wrong units (the spacing of the metres problem used for millimetres) finds no pairs.
+    stuck = make_icp()(1000 * source, 1000 * target, np.eye(4), R)
+    np.testing.assert_allclose(stuck.transform, np.eye(4), atol=1e-9)
 
 
 def test_refine_pass_is_more_accurate_than_one_pass():
     source, target, T = biased_pair()
-    one = make_icp(((POINT_TO_POINT, 0.1),))(source, target, np.eye(4))
-    two = make_icp(two_windows(POINT_TO_POINT))(source, target, np.eye(4))
+    one = make_icp(((POINT_TO_POINT, 4.0),))(source, target, np.eye(4), R)
+    two = make_icp(two_windows(POINT_TO_POINT))(source, target, np.eye(4), R)
     rot1, trans1 = isotropic_errors(one.transform, T)
     rot2, trans2 = isotropic_errors(two.transform, T)
     assert trans1 > 1.5e-3 and trans2 < trans1 / 3, (trans1, trans2)  # measured: 2.4e-3 against 4e-4
@@ -77,19 +96,19 @@ def test_point_to_plane_stages_reach_the_truth_from_farther_off():
     pp_ok = default_ok = 0
     for seed in range(10):
         source, target, T = far_noisy_pair(seed)
-        pp_ok += success(pp(source, target, np.eye(4)).transform, T)
-        default_ok += success(default(source, target, np.eye(4)).transform, T)
+        pp_ok += success(pp(source, target, np.eye(4), R).transform, T)
+        default_ok += success(default(source, target, np.eye(4), R).transform, T)
     assert default_ok >= 8 and pp_ok <= 2, (default_ok, pp_ok)
 
 
-def test_point_to_point_finish_keeps_the_precision_near_the_truth():
-    """From 5° off, the default stages end as precise as point-to-point alone (its last two stages are that)."""
+def test_the_default_stages_are_as_precise_as_point_to_point_near_the_truth():
+    """From 5° off, the default stages (point-to-plane only) end as precise as point-to-point, on noisy clouds."""
     pp, default = make_icp(two_windows(POINT_TO_POINT)), make_icp()
     pp_err, default_err = [], []
     for seed in range(8):
         source, target, T = far_noisy_pair(seed, angle_deg=5.0)
-        pp_err.append(isotropic_errors(pp(source, target, np.eye(4)).transform, T)[0])
-        default_err.append(isotropic_errors(default(source, target, np.eye(4)).transform, T)[0])
+        pp_err.append(isotropic_errors(pp(source, target, np.eye(4), R).transform, T)[0])
+        default_err.append(isotropic_errors(default(source, target, np.eye(4), R).transform, T)[0])
     assert np.mean(default_err) <= np.mean(pp_err) * 1.2 + 0.05, (default_err, pp_err)
     assert max(default_err) < 1.5
 
@@ -98,30 +117,32 @@ def test_prepared_target_follows_the_content_not_the_object():
     """The normals of the last target are reused; changing that array in place must not reuse them."""
     icp = make_icp()
     source, target, T = far_noisy_pair(0, angle_deg=10.0)
-    first = icp(source, target, np.eye(4))
-    again = icp(source, target, np.eye(4))
+    first = icp(source, target, np.eye(4), R)
+    again = icp(source, target, np.eye(4), R)
     np.testing.assert_allclose(first.transform, again.transform, atol=1e-12)  # OpenMP sums: not bit-exact
     target += [0.03, 0.0, 0.0]  # the same object, moved
-    moved = icp(source, target, np.eye(4))
+    moved = icp(source, target, np.eye(4), R)
     T_moved = T.copy()
     T_moved[0, 3] += 0.03
     assert isotropic_errors(moved.transform, T_moved)[1] < 0.01 < 0.02 < isotropic_errors(moved.transform, T)[1]
-    fresh = make_icp()(source, target, np.eye(4))
+    fresh = make_icp()(source, target, np.eye(4), R)
     np.testing.assert_allclose(moved.transform, fresh.transform, atol=1e-12)
 
 
 def test_rescue_icp_reaches_the_truth_from_beyond_the_default_window():
     """A flat ellipsoid (half-thickness 0.12) lifted 0.4 and turned 8°: its copy is 0.16 above it, beyond the
-    default stages' 0.1 window, so they find no pairs and stay put; the rescue's one wide pass (0.5) converges."""
+    default stages' 0.2 window (8 spacings), so they find no pairs and stay put; the rescue's one wide pass (0.5 of
+    the unit frame, whatever the spacing) converges."""
     rng = np.random.default_rng(4)
     u = rng.standard_normal((1500, 3))
     source = u / np.linalg.norm(u, axis=1, keepdims=True) * [0.3, 0.2, 0.12]
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(np.deg2rad(8.0) * np.array([1.0, 2.0, -1.0]) / np.sqrt(6.0)).as_matrix()
-    T[:3, 3] = [0.0, 0.0, 0.4]
+    T[:3, 3] = [0.0, 0.0, 0.45]
     target = source @ T[:3, :3].T + T[:3, 3]
-    assert not success(make_icp()(source, target, np.eye(4)).transform, T)
-    assert success(make_icp(((POINT_TO_POINT, RESCUE_WINDOW),))(source, target, np.eye(4)).transform, T)
+    assert not success(make_icp()(source, target, np.eye(4), R).transform, T)
+    wide = make_icp(((POINT_TO_POINT, RESCUE_WINDOW),), window_unit="extent")
+    assert success(wide(source, target, np.eye(4), R).transform, T)
 
 
 @pytest.mark.parametrize("stages", [(), (("point_to_line", 0.1),), ((POINT_TO_POINT, 0.0),)])

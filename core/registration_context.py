@@ -1,0 +1,142 @@
+"""The state of one registration, on one object that every stage reads: the prepared clouds, the config, the
+injected functions (reward model, ICP, global match), the timer, and the candidates so far.
+
+``prepare`` turns the two input clouds into ``PreparedClouds``: checked, capped at ``MAX_WORKING_POINTS`` (a
+fixed-seed subset: memory and time stay bounded for million-point scans), mapped into the model's unit frame,
+measured (``core.resolution``) and resampled to the model's N points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from pranet.core.actions import ActionTable
+from pranet.core.agent import AgentResult, ScoreFn
+from pranet.core.confidence import Confidence, ConfidenceEstimator
+from pranet.core.nearest import subsample
+from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
+from pranet.core.registration_config import RegistrationConfig
+from pranet.core.registration_types import Candidate, GlobalMatchFn, IcpFn
+from pranet.core.resolution import Resolution, measure_resolution
+from pranet.core.se3 import Array
+from pranet.core.stage_timer import StageTimer
+
+# Larger clouds are cut to this many points (fixed seed) before anything else: a 1M-point LiDAR scan then costs
+# what a 200k-point one does, and the working copies stay under ~20 MB (docs/DESIGN.md, "Large clouds").
+MAX_WORKING_POINTS = 200_000
+RANK_QUERIES = 256  # query points per direction of the quick confidence that ranks agent starts
+
+
+class Scorer(Protocol):
+    """What the pipeline needs of a reward model (``pranet.engine.runtime.RewardModel`` is one)."""
+
+    table: ActionTable
+    schedule: tuple[int, ...]
+    n_points: int
+
+    def score_fn(self, target: npt.ArrayLike) -> ScoreFn: ...
+
+
+@dataclass(frozen=True)
+class PreparedClouds:
+    """Both clouds of one registration, ready for every stage."""
+
+    n_source: int  # points as given
+    n_target: int
+    norm: Normalization  # world -> unit frame
+    src_unit: Array  # (Ns', 3) the working source (capped), unit frame
+    tgt_unit: Array  # (Nt', 3)
+    resolution: Resolution  # unit frame
+    src_n: Array  # (N, 3) resampled for the agent
+    tgt_n: Array  # (N, 3)
+
+
+def prepare(
+    source: npt.ArrayLike,
+    target: npt.ArrayLike,
+    n_points: int,
+    rng: np.random.Generator,
+    max_points: int = MAX_WORKING_POINTS,
+) -> PreparedClouds:
+    """Validate, cap, normalise to the unit frame (one similarity for both clouds), measure, resample."""
+    src = check_cloud(source, "source")
+    tgt = check_cloud(target, "target")
+    src_work, tgt_work = subsample(src, max_points, seed=11), subsample(tgt, max_points, seed=12)
+    norm = fit_normalization(src_work, tgt_work)
+    src_unit, tgt_unit = norm.to_unit(src_work), norm.to_unit(tgt_work)
+    return PreparedClouds(
+        n_source=len(src),
+        n_target=len(tgt),
+        norm=norm,
+        src_unit=src_unit,
+        tgt_unit=tgt_unit,
+        resolution=measure_resolution(src_unit, tgt_unit),
+        src_n=resample(src_unit, n_points, rng),
+        tgt_n=resample(tgt_unit, n_points, rng),
+    )
+
+
+@dataclass
+class RegistrationContext:
+    """One registration in progress. Stages read the clouds and functions and ``offer`` their candidates;
+    the most confident one so far is ``best``."""
+
+    clouds: PreparedClouds
+    config: RegistrationConfig
+    scorer: Scorer
+    schedule: tuple[int, ...]
+    rng: np.random.Generator
+    seed: int  # of the global match (a pure function of the request)
+    timer: StageTimer
+    estimator: ConfidenceEstimator
+    icp: IcpFn | None = None  # the refinement at the data's resolution (None: PRANet-v1)
+    wide_icp: IcpFn | None = None  # the wide-window ICP of the rescue
+    global_match: GlobalMatchFn | None = None
+    deadline: float | None = None
+    # Filled in by the stages:
+    starts: Array = field(default_factory=lambda: np.eye(4)[None])  # (B, 4, 4) every agent run's start, unit frame
+    agents: list[AgentResult] = field(default_factory=list)  # every agent run, in the order of ``starts``
+    agent_scheduled: int = 0  # scheduled steps the input-pose run has done (early stops may take fewer)
+    checks: list[tuple[int, float]] = field(default_factory=list)  # exit checks: (agent steps, confidence)
+    start_scores: list[float] = field(default_factory=list)  # global mode: each start's quick confidence
+    best: Candidate | None = None
+    tried: dict[str, float] = field(default_factory=dict)  # candidate name -> its best confidence
+
+    @property
+    def loop(self) -> dict:
+        """The agent loop's keyword arguments."""
+        c = self.config
+        return {"policy": c.policy, "rng": self.rng, "early_stop": c.early_stop, "deadline": self.deadline}
+
+    @property
+    def confident(self) -> bool:
+        return self.best is not None and self.best.confidence.score >= self.config.threshold
+
+    def evaluate(self, T_unit: Array) -> Confidence:
+        with self.timer.stage("confidence"):
+            return self.estimator.evaluate(T_unit)
+
+    def refine(self, T_unit: Array):  # -> IcpResult
+        assert self.icp is not None
+        with self.timer.stage("icp"):
+            return self.icp(self.clouds.src_unit, self.clouds.tgt_unit, T_unit, self.clouds.resolution)
+
+    def offer(self, name: str, T_unit: Array, agent_index: int | None = None, refine: bool = True) -> Candidate:
+        """Refine ``T_unit`` (when ICP is on and ``refine``), score it, and keep it if it beats ``best``."""
+        refined = self.refine(T_unit) if refine and self.icp is not None else None
+        T = refined.transform if refined is not None else T_unit
+        candidate = Candidate(self.evaluate(T), name, T, refined, agent_index)
+        self.tried[name] = max(self.tried.get(name, 0.0), candidate.confidence.score)
+        if candidate.beats(self.best):
+            self.best = candidate
+        return candidate
+
+    def quick_scores(self, agents: Sequence[AgentResult]) -> list[float]:
+        """A quick confidence of each agent's result (fewer query points): to rank starts before refining them."""
+        with self.timer.stage("confidence"):
+            return [self.estimator.evaluate(a.transform, RANK_QUERIES).score for a in agents]

@@ -1,0 +1,82 @@
+"""The types a registration passes between its stages and to its callers: the refinement and global-match
+functions the engine injects, a candidate result, and the final ``Registration``.
+
+Every transform is ``T_target_source``: target ≈ R @ source + t. Inside the pipeline the clouds live in the
+model's unit frame (``core.preprocess.Normalization``); a ``Registration`` is in the input's (world) units.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pranet.core.agent import AgentResult
+from pranet.core.confidence import Confidence
+from pranet.core.preprocess import Normalization
+from pranet.core.resolution import Resolution
+from pranet.core.se3 import Array
+
+# Which estimate won (the response's ``candidate``).
+AGENT = "agent"  # the agent from the input pose (or, with init="global", from the best of its starts)
+GLOBAL_MATCH = "global_match"  # the classical global match (features + robust solver), refined
+RESTARTS = "restarts"  # the agent's coarse phase again from starts around the best estimate
+WIDE_ICP = "wide_icp"  # ICP with a wide window from the input pose
+CANDIDATES = (AGENT, GLOBAL_MATCH, RESTARTS, WIDE_ICP)
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    transform: Array  # (4, 4) T_target_source, unit frame
+    fitness: float
+    inlier_rmse: float  # unit frame
+
+
+# icp(source_unit (N, 3), target_unit (M, 3), init T_target_source (4, 4), resolution (unit frame)) -> IcpResult.
+IcpFn = Callable[[Array, Array, Array, Resolution], IcpResult]
+# global_match(source_unit (N, 3), target_unit (M, 3), resolution (unit frame), seed) -> T_target_source (4, 4),
+# from any initial pose; None when it finds no answer.
+GlobalMatchFn = Callable[[Array, Array, Resolution, int], "Array | None"]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One estimate competing to be the result, in the unit frame."""
+
+    confidence: Confidence
+    name: str  # one of CANDIDATES
+    T_unit: Array  # (4, 4) T_target_source, unit frame
+    refined: IcpResult | None  # the ICP that produced it, if any
+    agent_index: int | None = None  # which agent run it came from; None for the classical candidates
+
+    def beats(self, other: Candidate | None) -> bool:
+        return other is None or self.confidence.score > other.confidence.score
+
+
+@dataclass
+class Registration:
+    T_target_source: Array  # (4, 4) the result in world units: target ≈ R @ source + t
+    agent_T_target_source: Array  # (4, 4) the agent's own estimate (before ICP), world units
+    trajectory: list[tuple[int, str, Array]]  # (step, action name, T_target_source in world units)
+    icp: IcpResult | None  # in world units (inlier_rmse scaled back)
+    timing_ms: dict[str, float] = field(default_factory=dict)
+    agent: AgentResult | None = None
+    normalization: Normalization | None = None
+    n_source: int = 0
+    n_target: int = 0
+    confidence: Confidence | None = None  # of ``T_target_source``, unit frame
+    init: str = "identity"
+    initial_transform: Array = field(default_factory=lambda: np.eye(4))  # (4, 4) the agent's start, world units
+    start_index: int = 0  # global mode: which start rotation won
+    start_scores: list[float] = field(default_factory=list)  # global mode: each start's agent-only confidence
+    checks: list[tuple[int, float]] = field(default_factory=list)  # exit checks: (agent steps, ICP confidence)
+    candidate: str = AGENT  # which candidate won (CANDIDATES)
+    candidates: dict[str, float] = field(default_factory=dict)  # every candidate tried -> its best confidence
+    resolution: Resolution | None = None  # the data's resolution, world units
+    n_used: tuple[int, int] = (0, 0)  # points of (source, target) the registration worked on (after the cap)
+
+    @property
+    def rescued(self) -> str | None:
+        """Which rescue won over the agent's result (``None``: the agent's own result won)."""
+        return self.candidate if self.candidate in (RESTARTS, WIDE_ICP) else None
