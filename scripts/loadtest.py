@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import sys
 import tempfile
 import threading
 import time
 from collections import Counter
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import httpx
@@ -48,8 +50,6 @@ def rss_mib(pid: int) -> float | None:
 
 def make_body(n_points: int, steps: list[int] | None, icp: bool, encoding: str, seed: int) -> bytes:
     """A request registering an anisotropic random cloud onto a copy moved by 5° and a small shift."""
-    import json
-
     rng = np.random.default_rng(seed)
     source = (rng.normal(size=(n_points, 3)) * [1.0, 0.5, 0.25]).astype(np.float32)
     angle = np.deg2rad(5.0)
@@ -82,6 +82,7 @@ def main() -> int:
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads per worker of the started server")
     p.add_argument("--max-concurrency", type=int, help="PRANET_MAX_CONCURRENCY of the started server")
     p.add_argument("--max-queue", type=int, help="PRANET_MAX_QUEUE of the started server")
+    p.add_argument("--records", type=Path, help="write one JSON line per request (sent, done, status, error)")
     args = p.parse_args()
     duration = min(max(args.duration, 1.0), MAX_DURATION_S)
 
@@ -99,6 +100,48 @@ def main() -> int:
         return load(args, url, pid, duration)
 
 
+@dataclass(frozen=True)
+class Sample:
+    """One request: when it was sent and answered (wall clock, seconds since the epoch, comparable across
+    processes), its HTTP status (None: no answer) and the transport error's type, if any."""
+
+    sent: float
+    done: float
+    status: int | None
+    error: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == 200
+
+
+def run_clients(url: str, headers: dict[str, str], body: bytes, clients: int, duration: float) -> list[Sample]:
+    """``clients`` threads post ``body`` to ``url``/register, each a new request as soon as the last is answered,
+    until ``duration`` seconds have passed; every request sent is waited for. One ``Sample`` per request."""
+    samples: list[Sample] = []
+    lock = threading.Lock()
+    stop_at = time.monotonic() + duration
+
+    def client() -> None:
+        with httpx.Client(base_url=url, headers=headers, timeout=60) as http:
+            while time.monotonic() < stop_at:
+                sent = time.time()
+                try:
+                    status, error = http.post("/register", content=body).status_code, None
+                except httpx.HTTPError as e:
+                    status, error = None, type(e).__name__
+                sample = Sample(sent, time.time(), status, error)
+                with lock:
+                    samples.append(sample)
+
+    threads = [threading.Thread(target=client, daemon=True) for _ in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=duration + 90)
+    return sorted(samples, key=lambda s: s.sent)
+
+
 def load(args: argparse.Namespace, url: str, pid: int | None, duration: float) -> int:
     """``args.clients`` clients post the same body for ``duration`` seconds; prints the counts and latencies."""
     headers = {"content-type": "application/json"}
@@ -106,42 +149,21 @@ def load(args: argparse.Namespace, url: str, pid: int | None, duration: float) -
         headers["Authorization"] = f"Bearer {args.api_key}"
     body = make_body(args.points, args.steps, not args.no_icp, args.encoding, seed=0)
 
-    latencies: list[float] = []
-    statuses: Counter = Counter()
-    errors: Counter = Counter()
-    lock = threading.Lock()
     with httpx.Client(base_url=url, headers=headers, timeout=60) as warm:  # first request pays lazy imports
         warm.post("/register", content=body)
     rss_before = rss_mib(pid) if pid else None
-    stop_at = time.monotonic() + duration
-
-    def client() -> None:
-        with httpx.Client(base_url=url, headers=headers, timeout=60) as http:
-            while time.monotonic() < stop_at:
-                t0 = time.perf_counter()
-                try:
-                    status = http.post("/register", content=body).status_code
-                except httpx.HTTPError as e:
-                    status = None
-                    with lock:
-                        errors[type(e).__name__] += 1
-                with lock:
-                    if status is not None:
-                        statuses[status] += 1
-                        if status == 200:
-                            latencies.append(time.perf_counter() - t0)
-
     started = time.monotonic()
-    threads = [threading.Thread(target=client, daemon=True) for _ in range(args.clients)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=duration + 90)
+    samples = run_clients(url, headers, body, args.clients, duration)
     elapsed = time.monotonic() - started
     rss_after = rss_mib(pid) if pid else None
+    if args.records:
+        args.records.write_text("".join(json.dumps(asdict(s)) + "\n" for s in samples))
 
+    statuses = Counter(s.status for s in samples if s.status is not None)
+    errors = Counter(s.error for s in samples if s.status is None)
+    latencies = [s.done - s.sent for s in samples if s.ok]
     n = sum(statuses.values())
-    failed = sum(c for s, c in statuses.items() if s != 200) + sum(errors.values())
+    failed = sum(1 for s in samples if not s.ok)
     print(f"server        {url}  ({args.clients} clients, {elapsed:.1f} s, {args.points} points, {args.encoding})")
     print(f"requests      {n} answered, {n / elapsed:.2f}/s; statuses {dict(sorted(statuses.items()))}")
     if latencies:
