@@ -21,7 +21,7 @@ from starlette.middleware.cors import CORSMiddleware
 from pranet.service.middleware import ApiKeyMiddleware, BodyLimitsMiddleware
 from pranet.service.registration import RequestError
 from pranet.service.routes import health, model, register, viewer
-from pranet.service.schemas import ENCODING, RegisterRequest
+from pranet.service.schemas import ENCODING, RegisterRequest, document_limits
 from pranet.service.settings import Settings
 from pranet.service.state import ServiceState
 
@@ -95,6 +95,10 @@ def _custom_openapi(app: FastAPI, settings: Settings) -> dict[str, Any]:
     request_schema = RegisterRequest.model_json_schema(ref_template="#/components/schemas/{model}")
     schemas.update(request_schema.pop("$defs", {}))
     schemas["RegisterRequest"] = request_schema
+    state = getattr(app.state, "service", None)  # set by the lifespan, before the first request
+    model = state.model if state is not None else None
+    n_scales = len(model.schedule) if model is not None else None
+    document_limits(schemas, settings.max_points, settings.max_list_points, n_scales)
     if settings.api_key:
         components["securitySchemes"] = {"BearerAuth": {"type": "http", "scheme": "bearer"}}
         for path, operations in schema.get("paths", {}).items():

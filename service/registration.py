@@ -22,6 +22,7 @@ from pranet.core.wire import decode_cloud as decode_wire
 from pranet.engine.engine import Engine
 from pranet.service.schemas import (
     MAX_ABS_COORDINATE,
+    MIN_POINTS,
     EncodedCloud,
     ExitCheck,
     IcpInfo,
@@ -100,6 +101,10 @@ def decode_cloud(cloud: list[list[float]] | EncodedCloud, name: str, limits: Clo
             points = decode_wire(cloud.data)
         except WireError as e:
             raise RequestError(422, f"{name}.data: {e}") from None
+        if len(points) < MIN_POINTS:  # a list's length is checked by the schema's minItems
+            raise RequestError(
+                422, f"{name}: needs at least {MIN_POINTS} points (3 always lie in a plane), got {len(points)}"
+            )
         # NaN/inf are reported by check_cloud (in register); finite but huge values are refused here.
         finite = points[np.isfinite(points)]
         if finite.size and np.abs(finite).max() > MAX_ABS_COORDINATE:

@@ -8,14 +8,28 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag
 
 from pranet.core.registration_config import SERVICE_DEFAULT
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
-from pranet.core.wire import ENCODING
+from pranet.core.wire import BYTES_PER_POINT, ENCODING, encoded_length
 
 MAX_ABS_COORDINATE = 1e9  # input units; keeps every intermediate (centroids, SVD) far from overflow
 MAX_STEPS_PER_SCALE = 200
+MIN_POINTS = 4  # three points always lie in one plane, and a registration needs 3-D extent
+# The base64 of N points (12 N bytes, a multiple of 3) is exactly 16 N characters, never padded.
+ENCODED_POINT = f"[A-Za-z0-9+/]{{{encoded_length(1)}}}"
+
+
+def _integral(value: Any) -> Any:
+    """JSON Schema's "integer" includes 1.0: take an integral float as the int it is (1.5 stays an error)."""
+    return int(value) if isinstance(value, float) and value.is_integer() else value
+
+
+def json_int(**bounds: int) -> Any:
+    """An int field that takes an integral float too ("1" and true stay errors); ``bounds``: ge, le."""
+    return Annotated[int, Field(**bounds), BeforeValidator(_integral)]  # the bounds inside: the schema shows them
+
 
 Coordinate = Annotated[
     float,
@@ -40,14 +54,20 @@ class _Strict(BaseModel):
 class EncodedCloud(_Strict):
     """A cloud as ``N * 3`` little-endian float32 values ``x0 y0 z0 x1 y1 z1 ...``, base64-encoded (RFC 4648).
 
-    About 4x smaller and much faster to parse than the nested list; ``N`` is ``len(decoded) / 12``.
+    About 4x smaller and 40x faster to parse than the nested list; ``N`` is ``len(data) / 16``. Clouds of more
+    than 200,000 points (PRANET_MAX_LIST_POINTS) must use it.
     """
 
     encoding: Literal["base64-float32-le"] = Field(description="the only encoding: base64 of float32 little-endian")
+    # The grammar is in the schema; decode_cloud checks it (with messages that say what is wrong).
     data: str = Field(
-        pattern=r"^[A-Za-z0-9+/]*={0,2}$",
-        description="standard base64 (with padding) of N*3 float32 little-endian values, row-major (N, 3)",
+        description=f"standard base64 of N*3 float32 little-endian values, row-major (N, 3): {encoded_length(1)} "
+        f"characters per point ({BYTES_PER_POINT} bytes), never padded; N >= {MIN_POINTS}, finite, |x| <= "
+        f"{MAX_ABS_COORDINATE:g}; the most points: maxLength / {encoded_length(1)} (PRANET_MAX_POINTS)",
         examples=["AAAAAAAAAAAAAAAAAACAPwAAAAAAAAAAAAAAAAAAgD8AAAAAAAAAAAAAAAAAAIA/AACAPwAAgD8AAIA/"],
+        # "format" names what the pattern cannot say (finite float32 values within the bounds), for client and
+        # test generators that know the encoding.
+        json_schema_extra={"format": ENCODING, "pattern": f"^(?:{ENCODED_POINT}){{{MIN_POINTS},}}$"},
     )
 
 
@@ -55,7 +75,14 @@ def _cloud_kind(value: Any) -> str:
     return "encoded" if isinstance(value, dict | EncodedCloud) else "list"
 
 
-PointList = Annotated[list[Point], Field(min_length=3, description="nested list of N >= 3 points [[x, y, z], ...]")]
+PointList = Annotated[
+    list[Point],
+    Field(
+        min_length=MIN_POINTS,
+        description=f"nested list of N >= {MIN_POINTS} points [[x, y, z], ...]; the most points: maxItems "
+        "(PRANET_MAX_LIST_POINTS; larger clouds must be base64-encoded)",
+    ),
+]
 Cloud = Annotated[
     Annotated[PointList, Tag("list")] | Annotated[EncodedCloud, Tag("encoded")],
     Discriminator(_cloud_kind),
@@ -63,7 +90,8 @@ Cloud = Annotated[
         description=(
             "a point cloud (N, 3) in any units: EITHER a nested list [[x, y, z], ...] OR "
             f'{{"encoding": "{ENCODING}", "data": "<base64>"}}. Coordinates must be finite with '
-            f"|x| <= {MAX_ABS_COORDINATE:g}; the point count is limited by the server (PRANET_MAX_POINTS)."
+            f"|x| <= {MAX_ABS_COORDINATE:g}, and the points must span 3-D (not all on one plane or line): else 422. "
+            "More points than the server's limits (PRANET_MAX_POINTS, PRANET_MAX_LIST_POINTS for a list): 413."
         )
     ),
 ]
@@ -81,8 +109,8 @@ class RegisterRequest(_Strict):
         "deterministic", description="action choice: argmax, or one of the paper's stochastic policies"
     )
     early_stop: bool = Field(False, description="end a step-size scale once no action has a positive predicted reward")
-    seed: int = Field(0, ge=0, le=2**32 - 1, description="seed of the resampling and stochastic policies")
-    steps: list[Annotated[int, Field(ge=0, le=MAX_STEPS_PER_SCALE)]] | None = Field(
+    seed: json_int(ge=0, le=2**32 - 1) = Field(0, description="seed of the resampling and stochastic policies")
+    steps: list[json_int(ge=0, le=MAX_STEPS_PER_SCALE)] | None = Field(
         None,
         min_length=1,
         max_length=8,
@@ -92,7 +120,7 @@ class RegisterRequest(_Strict):
         ),
         examples=[[20, 40]],
     )
-    exit_checks: list[Annotated[int, Field(ge=1, le=8 * MAX_STEPS_PER_SCALE)]] = Field(
+    exit_checks: list[json_int(ge=1, le=8 * MAX_STEPS_PER_SCALE)] = Field(
         list(SERVICE_DEFAULT.exit_checks),
         max_length=16,
         description="with icp: after these many agent steps (cumulative), refine with ICP and return at once if the "
@@ -112,10 +140,8 @@ class RegisterRequest(_Strict):
         "'global' (from `starts` well-spread rotations at once, for any initial rotation; the most confident "
         "results are refined by ICP and the best is returned; about `starts` times the agent's work)",
     )
-    starts: int = Field(
+    starts: json_int(ge=1, le=MAX_STARTS) = Field(
         DEFAULT_STARTS,
-        ge=1,
-        le=MAX_STARTS,
         description="init='global' only: number of start rotations (24 = the rotations of the cube, every rotation "
         "within 63° of one)",
     )
@@ -194,3 +220,21 @@ class ReadyResponse(BaseModel):
 
 class ErrorResponse(BaseModel):
     detail: str | list[dict[str, Any]] = Field(description="what went wrong: a message, or a list of field errors")
+
+
+def document_limits(
+    components: dict[str, Any], max_points: int, max_list_points: int, n_scales: int | None = None
+) -> None:
+    """Write a server's own limits into the OpenAPI ``components`` built from these models, so that the schema
+    says what this server accepts: the most points per cloud as a list (``maxItems``) and base64-encoded
+    (``maxLength``), and the steps' length (one count per scale of the served model, when it is loaded)."""
+    request = components["RegisterRequest"]["properties"]
+    for name in ("source", "target"):
+        for variant in request[name]["oneOf"]:
+            if variant.get("type") == "array":
+                variant["maxItems"] = min(max_points, max_list_points)
+    components["EncodedCloud"]["properties"]["data"]["maxLength"] = encoded_length(max_points)
+    if n_scales is not None:
+        for variant in request["steps"]["anyOf"]:
+            if variant.get("type") == "array":
+                variant["minItems"] = variant["maxItems"] = n_scales

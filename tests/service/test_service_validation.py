@@ -64,14 +64,17 @@ def test_nan_and_inf_in_base64_are_refused(http: httpx.Client) -> None:
         assert _messages(r) == "target: contains NaN or infinite values"
 
 
-@pytest.mark.parametrize("points", [[], [[0.0, 0.0, 1.0]], [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]])
-def test_empty_and_fewer_than_three_points(http: httpx.Client, points: list) -> None:
+@pytest.mark.parametrize(
+    "points", [[], [[0.0, 0.0, 1.0]], [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0, 1, 0]]]
+)
+def test_fewer_than_four_points(http: httpx.Client, points: list) -> None:
+    """Three points always lie in a plane: the schema's minimum is 4, in both encodings."""
     r = _post(http, source=points)
     assert r.status_code == 422
-    assert "at least 3" in _messages(r) and "source" in _messages(r)
+    assert "at least 4 items" in _messages(r) and "source" in _messages(r)
     r = http.post("/register", json={"source": b64(np.array(points).reshape(-1, 3)), "target": _good()[1]})
     assert r.status_code == 422
-    assert "source: needs at least 3 points" in _messages(r)
+    assert f"source: needs at least 4 points (3 always lie in a plane), got {len(points)}" == _messages(r)
 
 
 @pytest.mark.parametrize(
@@ -242,7 +245,7 @@ def test_out_of_range_options(http: httpx.Client, fields: dict) -> None:
         {"early_stop": "true"},
         {"return_trajectory": "yes"},
         {"seed": "5"},
-        {"seed": 5.0},
+        {"seed": 5.5},  # 5.0 is taken: JSON Schema's "integer" includes it
         {"steps": ["1", "2"]},
     ],
 )
@@ -288,6 +291,6 @@ def test_far_too_many_encoded_points_are_refused_before_decoding(http: httpx.Cli
     even be valid float32 (here: base64 of a length no cloud has, 13 bytes a "point")."""
     n = MAX_POINTS + 5000
     junk = {"encoding": "base64-float32-le", "data": base64.b64encode(b"\x01" * (12 * n + 1)).decode()}
-    r = http.post("/register", json={"source": b64(np.eye(3)), "target": junk})
+    r = http.post("/register", json={"source": b64(np.eye(4)[:, :3]), "target": junk})
     assert r.status_code == 413
     assert _messages(r).startswith(f"target: {n:,} points, more than this server's limit of {MAX_POINTS:,}")
