@@ -205,7 +205,8 @@ class Nginx:
 
 @contextmanager
 def nginx_up(work: Path, upstreams: Sequence[str]) -> Iterator[Nginx]:
-    """Debian's nginx on a free loopback port in front of ``upstreams``, until it answers /health."""
+    """Debian's nginx on a free loopback port in front of ``upstreams``, once it answers (/health, through it: 200
+    once a replica is up, its own 503 when none is)."""
     port = free_port()
     conf = nginx_config(work, f"127.0.0.1:{port}", upstreams)
     access_log = work / "nginx-access.log"  # the template logs to /dev/stdout
@@ -230,8 +231,8 @@ def nginx_up(work: Path, upstreams: Sequence[str]) -> Iterator[Nginx]:
             if process.poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"nginx did not come up:\n{(work / 'nginx-error.log').read_text()[-2000:]}")
             try:
-                if httpx.get(f"{nginx.url}/health", timeout=2).status_code == 200:
-                    break
+                httpx.get(f"{nginx.url}/health", timeout=5)
+                break
             except httpx.TransportError:
                 pass
             time.sleep(0.05)

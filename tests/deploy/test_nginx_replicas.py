@@ -14,10 +14,12 @@ import json
 import os
 import re
 import shutil
+import socket
 import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import pytest
 import yaml
 
@@ -103,6 +105,23 @@ def test_nginx_accepts_the_compose_config(replica_check, nginx: str, tmp_path: P
         timeout=30,
     )
     assert done.returncode == 0, done.stderr
+
+
+def test_nginx_answers_in_the_services_shape_when_it_cannot(replica_check, nginx: str, tmp_path: Path) -> None:
+    """No replica to answer: a JSON 503 with Retry-After, which pranet-client retries; a body over the service's
+    limit, announced by Content-Length: a JSON 413 before the body is read."""
+    with replica_check.nginx_up(tmp_path, [f"127.0.0.1:{replica_check.free_port()}"]) as proxy:
+        r = httpx.post(f"{proxy.url}/register", content=b"{}", headers={"content-type": "application/json"})
+        assert r.status_code == 503, r.text
+        assert r.headers["retry-after"] == "1" and "retry later" in r.json()["detail"]
+
+        limit = Settings().body_limit_bytes
+        port = int(proxy.url.rsplit(":", 1)[1])
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+            s.sendall(f"POST /register HTTP/1.1\r\nHost: x\r\nContent-Length: {limit + 1}\r\n\r\n".encode())
+            head, _, body = s.recv(65536).partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 413"), head
+        assert str(limit) in json.loads(body)["detail"]
 
 
 # --- the topology under load -----------------------------------------------------------------------------------
