@@ -1,6 +1,9 @@
 # PRANet registration service: onnxruntime + Open3D ICP behind FastAPI/uvicorn. No torch in this image.
 #   docker build -t pranet .
 #   docker run --rm -p 8000:8000 pranet            # add -e PRANET_API_KEY=... to require a bearer token
+# It runs as uid 10001 and writes nothing at run time, so a read-only root filesystem works
+# (docker run --read-only; deploy/k8s). The batch client is in it too: pranet-client register-many (deploy/k8s/batch).
+# Replicas behind nginx: deploy/compose.yaml.
 # The model shipped in the wheel (pranet.model: model/default/*.onnx, card.json) is served by default;
 # mount another one with -v /path/to/model:/model:ro -e PRANET_MODEL_DIR=/model.
 
@@ -34,10 +37,11 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     PRANET_PORT=8000 \
     OMP_WAIT_POLICY=PASSIVE
 
-# The wheel with the service extra only, every dependency pinned by requirements/service.lock.
+# The wheel with the service extra only, and httpx for pranet-client (the batch Job runs this image), every
+# dependency pinned by requirements/service.lock.
 COPY requirements/service.lock /tmp/service.lock
 COPY --from=build /dist/ /tmp/wheels/
-RUN pip install --no-cache-dir -c /tmp/service.lock "$(ls /tmp/wheels/pranet-*.whl)[service]" \
+RUN pip install --no-cache-dir -c /tmp/service.lock "$(ls /tmp/wheels/pranet-*.whl)[service]" httpx \
     && rm -rf /tmp/wheels /tmp/service.lock \
     && python -c "import importlib.util as u; assert u.find_spec('torch') is None, 'torch must not be in the image'" \
     && python -c "from pranet.engine.runtime import RewardModel; print('model', RewardModel.load(threads=1).info())"
@@ -49,6 +53,7 @@ USER 10001:10001
 WORKDIR /home/pranet
 
 EXPOSE 8000
-HEALTHCHECK --interval=30s --timeout=5s --start-period=30s --retries=3 \
-    CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/health' % os.environ.get('PRANET_PORT', '8000'), timeout=4)"]
+# /ready (the model is loaded), with the API key when one is set: the probe reads PRANET_API_KEY and PRANET_PORT.
+HEALTHCHECK --interval=10s --timeout=5s --start-period=60s --retries=3 \
+    CMD ["python", "-m", "pranet.service.probe", "ready"]
 CMD ["pranet-serve", "--host", "0.0.0.0"]

@@ -2,7 +2,8 @@
 # The Docker image's install path, checked without Docker:
 #   wheel of the working tree -> fresh venv with the service extra only, pinned by requirements/service.lock
 #   -> torch absent -> pranet-serve started outside the repository (no repo source on sys.path)
-#   -> registrations over HTTP (python's urllib, nothing else) -> SIGTERM.
+#   -> registrations over HTTP (python's urllib, nothing else) -> pranet-client register-many (the batch Job's
+#   command, from the same venv) -> SIGTERM.
 # Usage: scripts/check_install_path.sh            (PYTHON=python3.11 to choose the interpreter)
 set -euo pipefail
 
@@ -33,10 +34,10 @@ done | tar --null -T - -cf -) | tar -xf - -C "$WORK/src"
 WHEEL="$(ls "$WORK"/dist/pranet-*.whl)"
 say "wheel: $(basename "$WHEEL")"
 
-# 2. A fresh venv with the service extra only, every dependency pinned.
-say "installing the wheel with the service extra into a fresh venv"
+# 2. A fresh venv with the service extra only, and httpx for pranet-client, every dependency pinned (as the image).
+say "installing the wheel with the service extra (and httpx) into a fresh venv"
 "$PYTHON" -m venv "$WORK/venv"
-"$WORK/venv/bin/pip" install --quiet -c "$REPO/requirements/service.lock" "${WHEEL}[service]" \
+"$WORK/venv/bin/pip" install --quiet -c "$REPO/requirements/service.lock" "${WHEEL}[service]" httpx \
     2> >(grep -v -e "WARNING: Location" >&2)
 
 mkdir -p "$WORK/run"
@@ -145,7 +146,26 @@ then
     exit 1
 fi
 
-# 5. Graceful stop.
+# 5. The batch client, as deploy/k8s/batch runs it from the image: the example pair, shard 0 of 1.
+say "pranet-client register-many on examples/bunny"
+printf 'id,source,target\nbunny,%s,%s\n' "$REPO/examples/bunny/bun045.ply" "$REPO/examples/bunny/bun000.ply" \
+    > "$WORK/pairs.csv"
+"$WORK/venv/bin/pranet-client" register-many "$WORK/pairs.csv" --out "$WORK/results.jsonl" \
+    --shard-index 0 --shard-count 1 --quiet --url "http://127.0.0.1:$PORT"
+"$WORK/venv/bin/python" - "$WORK/results.jsonl" <<'PY'
+import json
+import sys
+
+lines = [json.loads(line) for line in open(sys.argv[1])]
+assert len(lines) == 1 and lines[0]["id"] == "bunny" and "error" not in lines[0], lines
+assert len(lines[0]["transform"]) == 4, lines[0]
+print("[install-path] register-many:", lines[0]["status"])
+PY
+# The containers' health check (HEALTHCHECK, compose, the Kubernetes readiness probe) ships in the wheel.
+PRANET_PORT="$PORT" "$WORK/venv/bin/python" -m pranet.service.probe ready
+say "probe ready: OK"
+
+# 6. Graceful stop.
 kill -TERM "$SERVER_PID"
 wait "$SERVER_PID" || true
 SERVER_PID=""
