@@ -28,9 +28,29 @@ EDGE_LENGTH_RATIO = 0.9
 FPFH_MAX_NN = 100
 
 
+# Fewer occupied voxels than this in either cloud: too few features to match, and KISS-Matcher 1.0.2 crashes the
+# process (a segmentation fault) on clouds of 4-5 voxels; the pipeline keeps its other candidates.
+MIN_VOXELS = 30
+
+
+def occupied_voxels(points: Array, voxel: float) -> int:
+    """How many cells of a grid of size ``voxel`` hold at least one of ``points: (N, 3)``."""
+    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64)
+    return len(np.unique(keys, axis=0))
+
+
+def enough_voxels(source: Array, target: Array, resolution: Resolution) -> bool:
+    """Whether both clouds cover at least ``MIN_VOXELS`` voxels (counted on fixed-seed subsets of 20k points)."""
+    counts = (occupied_voxels(subsample(p, 20_000, seed=5), resolution.voxel) for p in (source, target))
+    return min(counts) >= MIN_VOXELS
+
+
 def global_match(source: Array, target: Array, resolution: Resolution, seed: int = 0) -> Array | None:
     """``T_target_source`` (4, 4) of ``source: (N, 3)`` onto ``target: (M, 3)`` from any initial pose:
-    KISS-Matcher's, else RANSAC's; ``None`` when neither finds an answer."""
+    KISS-Matcher's, else RANSAC's; ``None`` when neither finds an answer, or the clouds cover fewer than
+    ``MIN_VOXELS`` voxels."""
+    if not enough_voxels(source, target, resolution):
+        return None
     T = kiss_matcher_global_match(source, target, resolution, seed)
     return T if T is not None else ransac_global_match(source, target, resolution, seed)
 
@@ -41,6 +61,8 @@ def kiss_matcher_global_match(source: Array, target: Array, resolution: Resoluti
     (the solver itself is deterministic)."""
     import kiss_matcher
 
+    if not enough_voxels(source, target, resolution):
+        return None
     scale = SCALED_VOXEL / resolution.voxel
     config = kiss_matcher.KISSMatcherConfig(SCALED_VOXEL, fpfh_r_gain=FEATURE_VOXELS)
     matcher = kiss_matcher.KISSMatcher(config)

@@ -45,7 +45,8 @@ def make_icp(
     stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES, max_iterations: int = 30, window_unit: str = "spacing"
 ):  # -> IcpFn
     """An ``IcpFn`` running Open3D's ICP from an estimate, one pass per ``(method, max_distance)`` stage, each
-    from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 8, 4 and 2 spacings).
+    from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 8, 4 and 2 spacings, then
+    point-to-point at 2 and 1).
     ``window_unit``: the stages' distances are in spacings of the data (``"spacing"``) or
     in the unit frame (``"extent"``). The target's preparation (voxel grid, normals) is cached per content."""
     import open3d as o3d

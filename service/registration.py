@@ -14,9 +14,9 @@ import numpy as np
 from pydantic import ValidationError
 
 from pranet.core.agent import AgentTimeout
-from pranet.core.pipeline import Registration
 from pranet.core.preprocess import DegenerateCloudError
 from pranet.core.registration_config import SERVICE_DEFAULT, RegistrationConfig
+from pranet.core.registration_types import Registration
 from pranet.core.wire import WireError, point_count
 from pranet.core.wire import decode_cloud as decode_wire
 from pranet.engine.engine import Engine
@@ -130,7 +130,8 @@ def request_config(
     """The registration a request asks for: ``base`` (the service's default) with the request's options.
 
     ``icp: false`` is the paper's PRANet-v1 (no ICP, so no exit checks or rescues); exit checks apply to the
-    identity start only; ``rescue: false`` turns both rescues off.
+    identity start only; ``rescue: false`` turns both rescues off, ``global_match: false`` the classical global
+    candidate.
     """
     if req.steps is not None and len(req.steps) != n_scales:
         raise RequestError(422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts")
@@ -140,6 +141,7 @@ def request_config(
         exit_checks=tuple(req.exit_checks) if refine and req.init == "identity" else (),
         rescue_window=base.rescue_window if refine and req.rescue else None,
         rescue_restarts=base.rescue_restarts and refine and req.rescue,
+        global_match=base.global_match and refine and req.global_match,
         init=req.init,
         n_starts=req.starts,
         policy=req.policy,
@@ -173,7 +175,9 @@ def run_registration(
         raise RequestError(504, "registration exceeded the server's time limit before it started (queued too long)")
     # 2. Register.
     try:
-        result: Registration = engine.register(source, target, config, np.random.default_rng(req.seed), deadline)
+        result: Registration = engine.register(
+            source, target, config, np.random.default_rng(req.seed), deadline, seed=req.seed
+        )
     except DegenerateCloudError as e:
         raise RequestError(422, str(e)) from None
     except AgentTimeout as e:
@@ -211,4 +215,7 @@ def build_response(
         initial_transform=_matrix(result.initial_transform),
         exit_checks=[ExitCheck(step=step, confidence=score) for step, score in result.checks],
         rescued=result.rescued,
+        candidate=result.candidate,
+        candidates=result.candidates,
+        spacing=result.resolution.spacing if result.resolution else None,
     )

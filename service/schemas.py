@@ -133,6 +133,12 @@ class RegisterRequest(_Strict):
         description="with icp: when the result is still 'suspect', try a wide-window ICP from the input pose, then "
         "the coarse phase again from six starts 30° around the best estimate; the most confident result is kept",
     )
+    global_match: bool = Field(
+        True,
+        description="with icp: when the agent's result is not 'converged' after its coarse phase, try the classical "
+        "global match (features at the data's resolution and a robust solver, from any initial pose), refined the "
+        "same way; the most confident candidate wins (always tried with init='global')",
+    )
     return_trajectory: bool = Field(True, description="include the agent's transform after every step")
     init: Literal["identity", "global"] = Field(
         "identity",
@@ -186,8 +192,10 @@ class RegisterResponse(BaseModel):
     confidence: float = Field(
         ge=0.0,
         le=1.0,
-        description="fraction of the source points that the result puts within one target sampling spacing of a "
-        "target point (subsampled; bounded by the overlap of the clouds)",
+        description="how tight the region where the clouds overlap is, at the data's own resolution: of the points "
+        "that the result brings within two voxels of the other cloud, the fraction within half a voxel, the smaller "
+        "of the two directions (scaled down when under 10 % of either cloud overlaps); it does not fall with partial "
+        "overlap",
     )
     status: Literal["converged", "suspect"] = Field(
         description="'converged' when confidence reaches the calibrated threshold, else 'suspect' (check the result)"
@@ -203,6 +211,19 @@ class RegisterResponse(BaseModel):
         None,
         description="which rescue won over the agent's result (null: none ran or none was more confident); with "
         "'restarts' the trajectory and initial_transform are the winning restart's",
+    )
+    candidate: Literal["agent", "global_match", "restarts", "wide_icp"] = Field(
+        "agent",
+        description="which candidate won: 'agent' (the agent's estimate, refined by ICP), 'global_match' (the "
+        "classical global match, for any initial pose, refined by ICP), 'restarts' or 'wide_icp' (the rescues)",
+    )
+    candidates: dict[str, float] = Field(
+        default_factory=dict, description="every candidate tried this request -> its best confidence"
+    )
+    spacing: float | None = Field(
+        None,
+        description="the data's resolution, input units: the median nearest-neighbour distance of the coarser cloud; "
+        "every distance of the registration (voxel, ICP windows, inlier distance) is a multiple of it",
     )
 
 

@@ -60,8 +60,18 @@ def success(T_est, T_gt) -> bool:
     return rot < SUCCESS_ROTATION_DEG and trans < SUCCESS_TRANSLATION
 
 
-def test_default_stages_are_point_to_plane_at_8_4_and_2_spacings():
-    assert DEFAULT_ICP_STAGES == SERVICE_DEFAULT.icp_stages == ((POINT_TO_PLANE, 8.0),) + two_windows(POINT_TO_PLANE)
+def test_default_stages_are_point_to_plane_at_8_4_2_then_point_to_point_at_2_1_spacings():
+    assert (
+        DEFAULT_ICP_STAGES
+        == SERVICE_DEFAULT.icp_stages
+        == (
+            (POINT_TO_PLANE, 8.0),
+            (POINT_TO_PLANE, 4.0),
+            (POINT_TO_PLANE, 2.0),
+            (POINT_TO_POINT, 2.0),
+            (POINT_TO_POINT, 1.0),
+        )
+    )
     assert two_windows(POINT_TO_POINT) == ((POINT_TO_POINT, 4.0), (POINT_TO_POINT, 2.0))
 
 

@@ -106,8 +106,13 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
         body = json.dumps({"source": src.tolist(), "target": tgt.tolist(), "early_stop": True, **options}).encode()
         oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
         info = {"name": "oracle", "version": "0", "sha256": "0" * 64}
-        # The engine's ICP functions: the snapping stand-in for the refinement, the one that stays for the wide pass.
-        engine = Engine(oracle, icp_factory=lambda stages: stays if len(stages) == 1 else icp)
+        # The engine's ICP functions: the snapping stand-in for the refinement, the one that stays for the wide pass;
+        # a global match that finds nothing, so that only the restarts can rescue.
+        engine = Engine(
+            oracle,
+            icp_factory=lambda stages, window_unit="spacing": stays if len(stages) == 1 else icp,
+            global_match=lambda *args: None,
+        )
         out = run_registration(body, engine, info, CloudLimits(10**6, 10**6), time.monotonic() + 60)
         return out.model_dump()
 

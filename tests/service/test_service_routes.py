@@ -257,15 +257,15 @@ def test_exit_checks_stop_the_agent_once_icp_converges(http: httpx.Client) -> No
 
 
 def test_rescue_recovers_what_a_narrow_icp_misses(http: httpx.Client) -> None:
-    """No agent steps and a 0.6 offset: ICP in its 0.1 window stays off (at 0.4 the point-to-plane stages now
-    slide to 2.8°); the wide-window rescue from the input pose lands on the truth and is kept because it is
-    more confident."""
-    rng = np.random.default_rng(0)
-    source = rng.uniform(-1, 1, size=(600, 3)) * [1.0, 0.5, 0.25]
-    R = Rotation.from_rotvec(np.deg2rad(10.0) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)).as_matrix()
-    t = np.array([0.6, -0.3, 0.15])
+    """No agent steps (and no global match) and 20° and a 0.9 offset: ICP in its windows of a few spacings goes astray;
+    the wide-window rescue from the input pose lands on the truth and is kept because it is more confident."""
+    from oracle_scorer import asymmetric_cloud
+
+    source = asymmetric_cloud(np.random.default_rng(0), 3000)  # a surface: the confidence judges surfaces
+    R = Rotation.from_rotvec(np.deg2rad(20.0) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)).as_matrix()
+    t = np.array([0.9, -0.45, 0.225])
     target = source @ R.T + t
-    body = {"source": b64(source), "target": b64(target), "steps": [0, 0]}
+    body = {"source": b64(source), "target": b64(target), "steps": [0, 0], "global_match": False}
     plain = http.post("/register", json={**body, "rescue": False}).json()
     assert plain["status"] == "suspect" and rotation_error_deg(np.array(plain["rotation"]), R) > 5.0
     rescued = http.post("/register", json=body).json()

@@ -64,14 +64,16 @@ def pranet_method(engine: Any, config: Any) -> MethodFn:
 
 
 def refined_by(coarse: Callable[[Array, Array, np.random.Generator], Array], icp: Any):
-    """``coarse`` (a baseline without refinement) followed by PRANet's ICP (an ``IcpFn``, unit frame), as the
-    pipeline runs it: the classical peer with the same refinement as the service."""
+    """``coarse`` (a baseline without refinement) followed by PRANet's ICP (an ``IcpFn``, unit frame, at the data's
+    measured resolution), as the pipeline runs it: the classical peer with the same refinement as the service."""
     from pranet.core.preprocess import fit_normalization
+    from pranet.core.resolution import measure_resolution
 
     def fn(source: Array, target: Array, rng: np.random.Generator) -> Array:
         T = coarse(source, target, rng)
         norm = fit_normalization(source, target)
-        refined = icp(norm.to_unit(source), norm.to_unit(target), norm.transform_to_unit(T))
+        src, tgt = norm.to_unit(source), norm.to_unit(target)
+        refined = icp(src, tgt, norm.transform_to_unit(T), measure_resolution(src, tgt))
         return norm.transform_to_world(refined.transform)
 
     return fn
