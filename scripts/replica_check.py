@@ -38,6 +38,7 @@ import httpx
 import numpy as np
 from loadtest import Sample, make_body, run_clients
 
+from pranet.core.wire import encode_cloud
 from pranet.service.settings import Settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,6 +63,14 @@ START_TIMEOUT_S = 120.0
 # them is still in flight when the signal lands, even if another finishes in between.
 IN_FLIGHT_AT_SIGNAL = 2
 IN_FLIGHT_WAIT_S = 20.0
+
+
+def pair_body(source: Path, target: Path) -> bytes:
+    """The default request for two cloud files, base64-encoded as pranet-client sends them."""
+    from pranet.client.io import read_point_cloud
+
+    clouds = {name: encode_cloud(read_point_cloud(path)) for name, path in (("source", source), ("target", target))}
+    return json.dumps({**clouds, "return_trajectory": False}).encode()
 
 
 def free_port() -> int:
@@ -397,8 +406,8 @@ def latency(w: dict) -> str:
     return f"{w['p50_ms']:.0f} / {w['p95_ms']:.0f}"
 
 
-def print_table(results: Sequence[dict], points: int) -> None:
-    print(f"replicas behind nginx: {points} points per cloud, base64, default schedule + ICP; {cores()} cores here")
+def print_table(results: Sequence[dict], what: str) -> None:
+    print(f"replicas behind nginx: {what}, base64, the default request; {cores()} cores here")
     print()
     print("| run | replicas | clients | sent | answered | failed | retried by nginx | answered by | answered/s |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: |")
@@ -463,7 +472,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--runs", default="term,kill", help=f"comma-separated, of {', '.join(RUNS)} (default term,kill)")
     p.add_argument("--duration", type=float, default=20.0, help="seconds of load per run (default 20)")
     p.add_argument("--clients", type=int, default=4, help="concurrent clients (default 4)")
-    p.add_argument("--points", type=int, default=2000, help="points per cloud (default 2000)")
+    p.add_argument("--points", type=int, default=2000, help="points per synthetic cloud (default 2000)")
+    p.add_argument(
+        "--pair",
+        nargs=2,
+        type=Path,
+        metavar=("SOURCE", "TARGET"),
+        help="register these two cloud files instead (e.g. examples/bunny/bun045.ply examples/bunny/bun000.ply)",
+    )
     p.add_argument("--json", type=Path, help="write the figures here")
     args = p.parse_args(argv)
     runs = [r.strip() for r in args.runs.split(",") if r.strip()]
@@ -471,11 +487,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if unknown:
         p.error(f"unknown run(s) {', '.join(unknown)}: choose from {', '.join(RUNS)}")
     nginx_binary()
-    body = make_body(args.points, None, True, "base64", seed=0)
+    body = pair_body(*args.pair) if args.pair else make_body(args.points, None, True, "base64", seed=0)
+    what = " -> ".join(str(p) for p in args.pair) if args.pair else f"synthetic, {args.points} points per cloud"
     results = [one_run(name, args.duration, args.clients, body) for name in runs]
-    print_table(results, args.points)
+    print_table(results, what)
     if args.json:
-        args.json.write_text(json.dumps({"points": args.points, "cores": cores(), "runs": results}, indent=1))
+        args.json.write_text(json.dumps({"body": what, "cores": cores(), "runs": results}, indent=1))
     lost = [r["run"] for r in results if r.get("signal", {}).get("signal") == "SIGTERM" and r["all"]["failed"]]
     if lost:
         print(f"requests lost with SIGTERM in run(s) {', '.join(lost)}", file=sys.stderr)
