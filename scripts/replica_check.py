@@ -456,14 +456,15 @@ def print_table(results: Sequence[dict], what: str) -> None:
         per_cpu = float(np.median([r["cpu"]["per_cpu_s"] for r in plain]))
         print()
         print(
-            f"per core (one replica = one core when it has it to itself): {per_cpu:.2f} registrations/s, "
-            f"the median of the runs above"
+            f"per core: {per_cpu:.2f} registrations per CPU-second of the replicas, {1e3 / per_cpu:.0f} ms of CPU each "
+            "(median of the runs above): what a replica answers per second on a core of its own. A replica uses a "
+            "little more than its one compute thread: its event loop reads the next request meanwhile."
         )
         if all(rates.values()):
             ratio = float(np.median(rates["two"]) / np.median(rates["one"]))
             print(
                 f"2 replicas / 1 replica, wall-clock answered/s (medians): x{ratio:.2f} "
-                f"(x2 at best; {cores()} cores here, shared with whatever else runs)"
+                f"(x2 at best, with a core each; {cores()} cores here, shared with whatever else runs)"
             )
 
 
