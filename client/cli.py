@@ -233,6 +233,8 @@ def format_summary(result: RegistrationResult, source: Path, target: Path, n_sou
             parts.append(f"status: {result.status}")
         if result.confidence is not None:
             parts.append(f"confidence: {result.confidence:.3f}")
+        if result.candidate is not None:
+            parts.append(f"candidate: {result.candidate}")
         lines.append(", ".join(parts))
     if result.timing_ms:
         timing = ", ".join(f"{k} {float(v):.1f}" for k, v in result.timing_ms.items())

@@ -79,13 +79,16 @@ class RegistrationResult:
     icp: dict[str, Any] | None  # {"applied", "fitness", "inlier_rmse"}
     timing_ms: dict[str, float]
     model: dict[str, Any]
-    confidence: float | None = None  # in [0, 1]: fraction of the source the target explains (see the API docs)
+    confidence: float | None = None  # in [0, 1]: how tight the clouds' overlap is at their resolution (API docs)
     status: str | None = None  # "converged" | "suspect"
     initial_transform: Array | None = None  # (4, 4) the agent's start pose (the identity unless init="global")
     n_source: int | None = None  # points the service received
     n_target: int | None = None
     exit_checks: list[dict[str, Any]] = field(default_factory=list)  # [{"step", "confidence"}]: ICP checks run
     rescued: str | None = None  # "wide_icp" | "restarts": which rescue won, if any
+    candidate: str | None = None  # which candidate won: "agent", "global_match", "restarts" or "wide_icp"
+    candidates: dict[str, float] = field(default_factory=dict)  # every candidate tried -> its best confidence
+    spacing: float | None = None  # the data's resolution (median nearest-neighbour distance), input units
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -120,6 +123,9 @@ class RegistrationResult:
             n_target=body.get("n_target"),
             exit_checks=list(body.get("exit_checks") or []),
             rescued=body.get("rescued"),
+            candidate=body.get("candidate"),
+            candidates=dict(body.get("candidates") or {}),
+            spacing=body.get("spacing"),
             raw=body,
         )
 

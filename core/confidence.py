@@ -62,10 +62,12 @@ def _tree(points: Array):  # -> a KD-tree when scipy is installed, else the poin
     return cKDTree(points)
 
 
-def _nearest(tree, queries: Array) -> Array:
+def _nearest(tree, queries: Array, bound: float) -> Array:
+    """Nearest distances of ``queries``; those beyond ``bound`` may come back as ``inf`` (a KD-tree searching for a
+    far point visits most of the tree: a wrong pose cost 40 ms per 2048 queries on a 40k-point scan, not 2)."""
     if isinstance(tree, np.ndarray):
         return nearest_distances(queries, tree)
-    d, _ = tree.query(queries, k=1)
+    d, _ = tree.query(queries, k=1, distance_upper_bound=bound)
     return np.asarray(d, dtype=np.float64)
 
 
@@ -96,8 +98,9 @@ class ConfidenceEstimator:
         direction (a quick ranking of many candidates)."""
         T = np.asarray(T_target_source, dtype=np.float64)
         q_src, q_tgt = self.source_queries[:n_queries], self.target_queries[:n_queries]
-        d_source = _nearest(self.target_tree, apply_transform(T, q_src))  # (Q,)
-        d_target = _nearest(self.source_tree, apply_transform(inverse(T), q_tgt))  # (Q,)
+        bound = self.near * (1.0 + 1e-9)
+        d_source = _nearest(self.target_tree, apply_transform(T, q_src), bound)  # (Q,)
+        d_target = _nearest(self.source_tree, apply_transform(inverse(T), q_tgt), bound)  # (Q,)
         inliers_s, overlap_s = float(np.mean(d_source <= self.tau)), float(np.mean(d_source <= self.near))
         inliers_t, overlap_t = float(np.mean(d_target <= self.tau)), float(np.mean(d_target <= self.near))
         precision_s = inliers_s / overlap_s if overlap_s > 0 else 0.0

@@ -31,17 +31,21 @@ FPFH_MAX_NN = 100
 # Fewer occupied voxels than this in either cloud: too few features to match, and KISS-Matcher 1.0.2 crashes the
 # process (a segmentation fault) on clouds of 4-5 voxels; the pipeline keeps its other candidates.
 MIN_VOXELS = 30
+VOXEL_COUNT_POINTS = 5000  # a fixed-seed subset is enough to tell a handful of voxels from many
 
 
 def occupied_voxels(points: Array, voxel: float) -> int:
     """How many cells of a grid of size ``voxel`` hold at least one of ``points: (N, 3)``."""
-    keys = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64)
-    return len(np.unique(keys, axis=0))
+    cells = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64)  # (N, 3)
+    cells -= cells.min(axis=0)
+    extent = cells.max(axis=0) + 1
+    # One integer per cell (row-major over the occupied box): np.unique on 1-D keys, not on rows, is 10x faster.
+    return len(np.unique((cells[:, 0] * extent[1] + cells[:, 1]) * extent[2] + cells[:, 2]))
 
 
 def enough_voxels(source: Array, target: Array, resolution: Resolution) -> bool:
-    """Whether both clouds cover at least ``MIN_VOXELS`` voxels (counted on fixed-seed subsets of 20k points)."""
-    counts = (occupied_voxels(subsample(p, 20_000, seed=5), resolution.voxel) for p in (source, target))
+    """Whether both clouds cover at least ``MIN_VOXELS`` voxels (counted on fixed-seed subsets)."""
+    counts = (occupied_voxels(subsample(p, VOXEL_COUNT_POINTS, seed=5), resolution.voxel) for p in (source, target))
     return min(counts) >= MIN_VOXELS
 
 
@@ -61,7 +65,7 @@ def kiss_matcher_global_match(source: Array, target: Array, resolution: Resoluti
     (the solver itself is deterministic)."""
     import kiss_matcher
 
-    if not enough_voxels(source, target, resolution):
+    if not enough_voxels(source, target, resolution):  # also when called on its own: it would crash
         return None
     scale = SCALED_VOXEL / resolution.voxel
     config = kiss_matcher.KISSMatcherConfig(SCALED_VOXEL, fpfh_r_gain=FEATURE_VOXELS)

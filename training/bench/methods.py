@@ -54,6 +54,9 @@ def pranet_method(engine: Any, config: Any) -> MethodFn:
             "timing_ms": reg.timing_ms,
             "n_steps": len(reg.trajectory),
             "agent_transform": reg.agent_T_target_source,
+            "status": reg.confidence.status if reg.confidence is not None else None,
+            "confidence": reg.confidence.score if reg.confidence is not None else None,
+            "candidate": reg.candidate,
         }
         if reg.agent is not None:  # steps after a translation: re-scored by head.onnx when the runtime reuses
             moved = set(np.asarray(engine.scorer.table.translation_indices).tolist())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
@@ -100,6 +101,45 @@ def _ratios(result: dict[str, Any]) -> list[str]:
     return out
 
 
+def _status_flag(result: dict[str, Any]) -> list[str]:
+    """How well each method's own ``status`` flags its failures: precision and recall of ``suspect``."""
+    rows = []
+    for setting in result["summary"]:
+        for method in result["summary"][setting]:
+            recs = [
+                r
+                for r in result.get("records", [])
+                if r["setting"] == setting and r["method"] == method and (r.get("extra") or {}).get("status")
+            ]
+            if not recs:
+                continue
+            failed = np.array([not r["success"] for r in recs])
+            suspect = np.array([r["extra"]["status"] == "suspect" for r in recs])
+            hits = int(np.sum(failed & suspect))
+            precision = hits / suspect.sum() if suspect.any() else math.nan
+            recall = hits / failed.sum() if failed.any() else math.nan
+            won = Counter(r["extra"].get("candidate") for r in recs)
+            rows.append(
+                [
+                    setting,
+                    LABELS.get(method, method),
+                    len(recs),
+                    int(failed.sum()),
+                    int(suspect.sum()),
+                    precision,
+                    recall,
+                ]
+                + [", ".join(f"{k} {v}" for k, v in sorted(won.items(), key=lambda kv: -kv[1]) if k)]
+            )
+    if not rows:
+        return []
+    head = ["setting", "method", "pairs", "failures", "suspect", "suspect precision", "suspect recall", "winner"]
+    return [
+        "\n## The status flag: precision and recall of `suspect` for failures (same success criterion)\n",
+        md_table(head, rows),
+    ]
+
+
 def _breakdowns(result: dict[str, Any]) -> list[str]:
     """Where a registration's time goes, in-process and over HTTP."""
     out: list[str] = []
@@ -122,7 +162,9 @@ def _breakdowns(result: dict[str, Any]) -> list[str]:
             "agent_steps",
             "icp",
             "confidence",
+            "global_match",
             "rescue",
+            "other",
             "server total",
             "HTTP/JSON overhead",
             "total (client)",
@@ -307,7 +349,18 @@ def _throughput(result: dict[str, Any]) -> list[str]:
 
 def report(result: dict[str, Any]) -> str:
     """The markdown report: one section per measurement, those the run made."""
-    sections = (_header, _latency, _ratios, _breakdowns, _flops, _sgemm, _ort_options, _variants, _throughput)
+    sections = (
+        _header,
+        _latency,
+        _ratios,
+        _status_flag,
+        _breakdowns,
+        _flops,
+        _sgemm,
+        _ort_options,
+        _variants,
+        _throughput,
+    )
     return "\n".join(line for section in sections for line in section(result)) + "\n"
 
 
