@@ -253,6 +253,7 @@ def ok_record(pair: Pair, result: RegistrationResult, attempts: int, client_ms: 
         "status": result.status,
         "confidence": result.confidence,
         "rescued": result.rescued,
+        "candidate": result.candidate,
         "n_source": result.n_source,
         "n_target": result.n_target,
         "timing_ms": result.timing_ms,  # the server's, per stage

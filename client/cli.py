@@ -120,7 +120,14 @@ def _registration_options(parser: argparse.ArgumentParser) -> None:
         dest="rescue",
         action="store_false",
         default=None,
-        help="do not try a wide-window ICP from the input pose when the result is suspect",
+        help="no rescues of a suspect result (restarts around the best estimate, wide-window ICP)",
+    )
+    parser.add_argument(
+        "--no-global-match",
+        dest="global_match",
+        action="store_false",
+        default=None,
+        help="do not try the classical global match when the agent is not confident",
     )
     parser.add_argument(
         "--init",
@@ -141,6 +148,7 @@ def _options_of(args: argparse.Namespace) -> dict[str, Any]:
         "early_stop": args.early_stop,
         "exit_checks": args.exit_checks,
         "rescue": args.rescue,
+        "global_match": args.global_match,
         "init": args.init,
         "starts": args.starts,
     }
