@@ -43,3 +43,23 @@ def _nearest_brute_force(a: Array, b: Array, chunk: int = CHUNK, exclude_self: b
         d2 = (x * x).sum(1)[:, None] - 2.0 * x @ b.T + bb[None]  # (c, M)
         out[i : i + chunk] = np.partition(d2, k, axis=1)[:, k] if k else d2.min(1)
     return np.sqrt(np.maximum(out, 0.0))
+
+
+def nearest_neighbours(a: Array, b: Array, k: int, chunk: int = CHUNK) -> npt.NDArray[np.int64]:
+    """For each row of ``a: (N, 3)``, the indices of its ``k`` nearest rows of ``b: (M, 3)``, nearest first:
+    ``(N, k)``. scipy's KD-tree when installed, else chunked brute force."""
+    k = min(k, len(b))
+    try:
+        from scipy.spatial import cKDTree
+    except ImportError:
+        out = np.empty((len(a), k), dtype=np.int64)
+        bb = (b * b).sum(1)
+        for i in range(0, len(a), chunk):
+            x = a[i : i + chunk]
+            d2 = (x * x).sum(1)[:, None] - 2.0 * x @ b.T + bb[None]  # (c, M)
+            part = np.argpartition(d2, k - 1, axis=1)[:, :k]
+            order = np.argsort(np.take_along_axis(d2, part, axis=1), axis=1)
+            out[i : i + chunk] = np.take_along_axis(part, order, axis=1)
+        return out
+    _, idx = cKDTree(b).query(a, k=k)
+    return np.asarray(idx, dtype=np.int64).reshape(len(a), k)

@@ -159,3 +159,30 @@ def test_rescue_icp_reaches_the_truth_from_beyond_the_default_window():
 def test_bad_stages_are_refused(stages):
     with pytest.raises(ValueError):
         make_icp(stages)
+
+
+def test_point_to_point_stages_are_skipped_where_the_surface_is_planar_at_its_resolution():
+    """A smooth dense surface (flatness 0) finishes with point-to-plane only; a rough one runs every stage. An ICP
+    stand-in records the stages Open3D is asked for (here: by the windows it passes)."""
+    from pranet.engine import icp as icp_module
+
+    calls = []
+    real = icp_module.make_icp
+
+    source, target, _ = far_noisy_pair(1, angle_deg=5.0)
+    for flat, expected in ((0.0, 3), (0.5, 5)):
+        import open3d as o3d
+
+        original = o3d.pipelines.registration.registration_icp
+
+        def spy(src, tgt, distance, init, estimation, criteria, _calls=calls, _orig=original):
+            _calls.append(distance)
+            return _orig(src, tgt, distance, init, estimation, criteria)
+
+        o3d.pipelines.registration.registration_icp = spy
+        try:
+            calls.clear()
+            real()(source, target, np.eye(4), Resolution(0.025, flatness=flat))
+        finally:
+            o3d.pipelines.registration.registration_icp = original
+        assert len(calls) == expected, (flat, calls)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter
 from collections.abc import Sequence
@@ -101,6 +102,11 @@ def _ratios(result: dict[str, Any]) -> list[str]:
     return out
 
 
+def _as_dict(record: Record | dict[str, Any]) -> dict[str, Any]:
+    """A record as a dict: the run passes ``Record`` objects, a JSON file dicts."""
+    return dataclasses.asdict(record) if isinstance(record, Record) else record
+
+
 def _status_flag(result: dict[str, Any]) -> list[str]:
     """How well each method's own ``status`` flags its failures: precision and recall of ``suspect``."""
     rows = []
@@ -108,7 +114,7 @@ def _status_flag(result: dict[str, Any]) -> list[str]:
         for method in result["summary"][setting]:
             recs = [
                 r
-                for r in result.get("records", [])
+                for r in map(_as_dict, result.get("records", []))
                 if r["setting"] == setting and r["method"] == method and (r.get("extra") or {}).get("status")
             ]
             if not recs:
