@@ -32,9 +32,9 @@ from pranet.core.se3 import Array, apply_transform, inverse
 
 # The status threshold; the same threshold ends the request at an exit check and decides whether the global match
 # and the rescues run, so it leans towards recall: a missed failure is not rescued, a false alarm costs time.
-DEFAULT_THRESHOLD = 0.55
-INLIER_SPACINGS = 2.0  # tau: half a voxel
-OVERLAP_SPACINGS = 8.0  # the overlap region: points within two voxels of the other cloud
+DEFAULT_THRESHOLD = 0.45
+INLIER_SPACINGS = 1.0  # tau: one spacing
+OVERLAP_SPACINGS = 4.0  # the overlap region: points within one voxel of the other cloud
 MIN_OVERLAP = 0.1  # below this overlap (of the smaller side) the score falls linearly to 0
 MAX_QUERIES = 2048  # query points per direction: 2-4 ms per evaluation, whatever the clouds' size
 

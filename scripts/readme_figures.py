@@ -8,7 +8,7 @@ ground truth ``T_target_source.txt``). Every request is what ``pranet-client reg
 option named on its line. It prints the lines the README quotes; rerun it after any change to the pipeline,
 the confidence or the model, and paste them (the README names this command beside them). When the real scans
 are there (``../shared/data/scans/pairs.csv``, or ``--scans``), it then registers every pair of them with the
-default request and says where the rescue ran and what it cost.
+default request and says which candidates ran and which won.
 
 Latencies are client-side wall times of interleaved requests (medians), so the two requests of a ratio see the
 same machine load; absolute milliseconds depend on the machine, the ratio much less.
@@ -150,10 +150,9 @@ def report(client: PranetClient, repeats: int, where: str) -> None:
             latencies[name].append(ms)
 
     default = results["default"]
-    winner = f", rescued by {default.rescued}" if default.rescued else ""
     print(
         f"default request: {fmt_errors(default.transform, T_true)} off, "
-        f"confidence {default.confidence:.2f} ({default.status}){winner}"
+        f"confidence {default.confidence:.2f} ({default.status}), won by the {default.candidate} candidate"
     )
     if default.trajectory:
         agent = fmt_errors(default.trajectory[-1].transform, T_true)
@@ -179,11 +178,13 @@ def report(client: PranetClient, repeats: int, where: str) -> None:
 
 
 def scan_pairs(client: PranetClient, pairs_csv: Path) -> None:
-    """The default request on every pair of ``pairs_csv`` (the real-scan format): where the rescue ran, its cost."""
+    """The default request on every pair of ``pairs_csv`` (the real-scan format): which candidates ran and won."""
     print(f"\nthe default request on {pairs_csv} (one request per pair):")
-    print("| pair | points | error | confidence | rescue ran | rescue ms | total ms |")
+    print("| pair | points | error | confidence | won by | candidates tried | total ms |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
-    rescue_ms, total_ms, registered = [], [], 0
+    tried: dict[str, int] = {}
+    won: dict[str, int] = {}
+    registered = 0
     with open(pairs_csv, newline="") as f:
         rows = list(csv.DictReader(f))
     for row in rows:
@@ -197,23 +198,16 @@ def scan_pairs(client: PranetClient, pairs_csv: Path) -> None:
             print(f"| {row['id']} | {sizes} | refused: {' '.join(str(e).split())[:100]} | | | | |")
             continue
         registered += 1
-        ran = result.timing_ms.get("rescue", 0.0) >= 0.5
-        if ran:
-            rescue_ms.append(result.timing_ms["rescue"])
-            total_ms.append(ms)
+        for name in result.candidates:
+            tried[name] = tried.get(name, 0) + 1
+        won[str(result.candidate)] = won.get(str(result.candidate), 0) + 1
+        candidates = ", ".join(f"{k} {v:.2f}" for k, v in result.candidates.items())
         print(
             f"| {row['id']} | {sizes} | {fmt_errors(result.transform, T_true)} | {result.confidence:.2f} "
-            f"({result.status}) | {result.rescued or ('yes' if ran else 'no')} | "
-            f"{result.timing_ms.get('rescue', 0.0):.0f} | {ms:.0f} |"
+            f"({result.status}) | {result.candidate} | {candidates} | {ms:.0f} |"
         )
-    if rescue_ms:
-        share = np.median(np.divide(rescue_ms, total_ms))
-        print(
-            f"the rescue ran on {len(rescue_ms)} of {registered} registered pairs: median {np.median(rescue_ms):.0f} "
-            f"ms ({min(rescue_ms):.0f}-{max(rescue_ms):.0f} ms), {share:.0%} of those requests' time (median)"
-        )
-    else:
-        print(f"the rescue ran on none of {registered} registered pairs")
+    counts = "; ".join(f"{k}: tried on {n}, won on {won.get(k, 0)}" for k, n in tried.items())
+    print(f"of {registered} registered pairs: {counts}")
 
 
 def stages(result: RegistrationResult) -> str:

@@ -64,7 +64,7 @@ def test_early_stop_ends_the_fine_phase_on_an_aligned_pair(http: httpx.Client) -
 def test_global_mode_finds_a_150_degree_rotation_the_identity_start_misses(http: httpx.Client) -> None:
     source, target, R = moved_pair(150.0)
     common = {"source": b64(source), "target": b64(target)}
-    ident = post(http, **common, init="identity", rescue=False)
+    ident = post(http, **common, init="identity", rescue=False, global_match=False)
     assert rotation_error_deg(ident["rotation"], R) > 20.0
     out = post(http, **common, init="global", starts=24)
     assert rotation_error_deg(out["rotation"], R) < 1.0, out["rotation"]
@@ -121,3 +121,16 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
     assert rotation_error_deg(rescued["rotation"], T[:3, :3]) < 1e-3
     plain = run(rescue=False)
     assert plain["rescued"] is None and plain["status"] == "suspect"
+
+
+def test_the_default_request_reaches_a_150_degree_rotation_through_the_global_match(http: httpx.Client) -> None:
+    """Beyond the agent's 60°: the default request (no init) is right and converged, and says the global match
+    won; the same request gives the same answer (the global match is seeded)."""
+    source, target, R = moved_pair(150.0)
+    body = {"source": b64(source), "target": b64(target), "return_trajectory": False}
+    out = post(http, **body)
+    assert rotation_error_deg(out["rotation"], R) < 1.0 and out["status"] == "converged"
+    assert out["candidate"] == "global_match" and out["candidates"]["agent"] < out["candidates"]["global_match"]
+    again = post(http, **body)  # the same answer, to Open3D's multithreaded summation order
+    np.testing.assert_allclose(again["transform"], out["transform"], atol=1e-9)
+    assert again["candidate"] == out["candidate"]
