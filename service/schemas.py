@@ -193,9 +193,9 @@ class RegisterResponse(BaseModel):
         ge=0.0,
         le=1.0,
         description="how tight the region where the clouds overlap is, at the data's own resolution: of the points "
-        "that the result brings within two voxels of the other cloud, the fraction within half a voxel, the smaller "
-        "of the two directions (scaled down when under 10 % of either cloud overlaps); it does not fall with partial "
-        "overlap",
+        "that the result brings within one voxel (4 spacings) of the other cloud, the fraction within one spacing, the "
+        "smaller of the two directions (scaled down when under 10 % of either cloud overlaps); it does not fall with "
+        "partial overlap",
     )
     status: Literal["converged", "suspect"] = Field(
         description="'converged' when confidence reaches the calibrated threshold, else 'suspect' (check the result)"
