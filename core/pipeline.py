@@ -221,7 +221,7 @@ def register(
     # 1. Prepare: validate, cap, unit frame, resolution, resample.
     with timer.stage("preprocess"):
         clouds = prepare(source, target, scorer.n_points, rng)
-        estimator = ConfidenceEstimator(clouds.src_unit, clouds.tgt_unit, clouds.resolution, config.threshold)
+        estimator = ConfidenceEstimator(clouds.src_index, clouds.tgt_index, clouds.resolution, config.threshold)
     ctx = RegistrationContext(
         clouds=clouds,
         config=config,

@@ -18,7 +18,7 @@ import numpy.typing as npt
 from pranet.core.actions import ActionTable
 from pranet.core.agent import AgentResult, ScoreFn
 from pranet.core.confidence import Confidence, ConfidenceEstimator
-from pranet.core.nearest import subsample
+from pranet.core.nearest import PointIndex, subsample
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
 from pranet.core.registration_config import RegistrationConfig
 from pranet.core.registration_types import Candidate, GlobalMatchFn, IcpFn
@@ -51,6 +51,8 @@ class PreparedClouds:
     norm: Normalization  # world -> unit frame
     src_unit: Array  # (Ns', 3) the working source (capped), unit frame
     tgt_unit: Array  # (Nt', 3)
+    src_index: PointIndex  # of src_unit: built once, shared by the resolution and the confidence
+    tgt_index: PointIndex
     resolution: Resolution  # unit frame
     src_n: Array  # (N, 3) resampled for the agent
     tgt_n: Array  # (N, 3)
@@ -69,13 +71,16 @@ def prepare(
     src_work, tgt_work = subsample(src, max_points, seed=11), subsample(tgt, max_points, seed=12)
     norm = fit_normalization(src_work, tgt_work)
     src_unit, tgt_unit = norm.to_unit(src_work), norm.to_unit(tgt_work)
+    src_index, tgt_index = PointIndex(src_unit), PointIndex(tgt_unit)
     return PreparedClouds(
         n_source=len(src),
         n_target=len(tgt),
         norm=norm,
         src_unit=src_unit,
         tgt_unit=tgt_unit,
-        resolution=measure_resolution(src_unit, tgt_unit),
+        src_index=src_index,
+        tgt_index=tgt_index,
+        resolution=measure_resolution(src_index, tgt_index),
         src_n=resample(src_unit, n_points, rng),
         tgt_n=resample(tgt_unit, n_points, rng),
     )

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from pranet.core.nearest import nearest_neighbours, subsample
+from pranet.core.nearest import PointIndex, subsample
 from pranet.core.se3 import Array
 
 SPACING_PROBES = 2000  # points whose nearest neighbour is measured (fixed seed): the median is stable to ~1 %
@@ -28,23 +28,30 @@ FLATNESS_PROBES = 500  # points whose neighbourhood's out-of-plane spread is mea
 FLATNESS_NEIGHBOURS = 16
 
 
-def median_spacing(points: npt.ArrayLike, probes: int = SPACING_PROBES, seed: int = 0) -> float:
+def median_spacing(
+    points: npt.ArrayLike, probes: int = SPACING_PROBES, seed: int = 0, index: PointIndex | None = None
+) -> float:
     """The median distance from a point of ``points: (N, 3)`` to its nearest other point (0 if all coincide).
 
     Measured for ``probes`` fixed-seed points against the whole cloud; repeated points (distance 0) are skipped:
     each probe's spacing is the distance to its nearest point elsewhere (among its ``DUPLICATE_NEIGHBOURS``
     nearest), so a cloud with repeated rows still reports its sampling density.
     """
-    p = np.asarray(points, dtype=np.float64)
-    probe = subsample(p, probes, seed=seed)  # (P, 3)
-    neighbours = p[nearest_neighbours(probe, p, DUPLICATE_NEIGHBOURS)]  # (P, k, 3)
-    d = np.linalg.norm(neighbours - probe[:, None, :], axis=2)  # (P, k), nearest first
+    index = index or PointIndex(points)
+    probe = subsample(index.points, probes, seed=seed)  # (P, 3)
+    d, _ = index.neighbours(probe, DUPLICATE_NEIGHBOURS)  # (P, k), nearest first
     d = np.where(d > 0, d, np.inf).min(axis=1)
     positive = d[np.isfinite(d)]
     return float(np.median(positive)) if len(positive) else 0.0
 
 
-def flatness(points: npt.ArrayLike, spacing: float, probes: int = FLATNESS_PROBES, seed: int = 0) -> float:
+def flatness(
+    points: npt.ArrayLike,
+    spacing: float,
+    probes: int = FLATNESS_PROBES,
+    seed: int = 0,
+    index: PointIndex | None = None,
+) -> float:
     """How far the surface is from planar at its own resolution: the median, over ``probes`` fixed-seed points of
     ``points: (N, 3)``, of the out-of-plane standard deviation of their ``FLATNESS_NEIGHBOURS`` nearest neighbours
     (the square root of the neighbourhood covariance's smallest eigenvalue), in spacings.
@@ -53,10 +60,12 @@ def flatness(points: npt.ArrayLike, spacing: float, probes: int = FLATNESS_PROBE
     of CAD shapes (sparse against their curvature) and about 0.5 on RGB-D fragments (sensor noise): where it is
     large, a point's estimated normal says little about the surface and point-to-plane ICP cannot finish precisely.
     """
-    p = np.asarray(points, dtype=np.float64)
+    index = index or PointIndex(points)
+    p = index.points
     if spacing <= 0 or len(p) < FLATNESS_NEIGHBOURS:
         return float("inf")
-    neighbourhoods = p[nearest_neighbours(subsample(p, probes, seed=seed), p, FLATNESS_NEIGHBOURS)]  # (P, k, 3)
+    _, nearest = index.neighbours(subsample(p, probes, seed=seed), FLATNESS_NEIGHBOURS)
+    neighbourhoods = p[nearest]  # (P, k, 3)
     centred = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
     covariance = np.einsum("pki,pkj->pij", centred, centred) / FLATNESS_NEIGHBOURS  # (P, 3, 3)
     smallest = np.linalg.eigvalsh(covariance)[:, 0]
@@ -87,8 +96,10 @@ class Resolution:
         return Resolution(self.spacing * factor, self.flatness)
 
 
-def measure_resolution(source: Array, target: Array) -> Resolution:
-    """The resolution of a pair: the coarser spacing of ``source: (N, 3)`` and ``target: (M, 3)``, so that
-    every scale resolves both clouds, and the target's flatness at it."""
-    spacing = max(median_spacing(source, seed=0), median_spacing(target, seed=1))
-    return Resolution(spacing, flatness(target, spacing))
+def measure_resolution(source: Array | PointIndex, target: Array | PointIndex) -> Resolution:
+    """The resolution of a pair: the coarser spacing of ``source: (N, 3)`` and ``target: (M, 3)`` (or their
+    indexes, built once per registration), so that every scale resolves both clouds, and the target's flatness."""
+    src = source if isinstance(source, PointIndex) else PointIndex(source)
+    tgt = target if isinstance(target, PointIndex) else PointIndex(target)
+    spacing = max(median_spacing(src.points, seed=0, index=src), median_spacing(tgt.points, seed=1, index=tgt))
+    return Resolution(spacing, flatness(tgt.points, spacing, index=tgt))

@@ -131,3 +131,33 @@ def test_large_clouds_cost_a_bounded_number_of_queries():
     c = estimator.evaluate(np.eye(4))
     assert time.perf_counter() - t0 < 1.0  # 2048 queries per direction: ~5 ms on an idle core
     assert c.status == "converged" and c.score == 1.0
+
+
+@pytest.mark.parametrize("scipy_tree", [True, False], ids=["kd-tree", "numpy brute force"])
+def test_the_point_index_agrees_with_all_pairs_distances(scipy_tree, monkeypatch):
+    """PointIndex (the confidence's and the resolution's one index per cloud) against all-pairs distances, with
+    scipy's KD-tree and with the numpy fallback; beyond ``bound`` a distance may be inf, never wrong."""
+    import builtins
+
+    from pranet.core.nearest import PointIndex
+
+    if not scipy_tree:
+        real_import = builtins.__import__
+
+        def no_scipy(name, *args, **kwargs):
+            if name.startswith("scipy"):
+                raise ImportError(name)
+            return real_import(name, *args, **kwargs)
+
+        monkeypatch.setattr(builtins, "__import__", no_scipy)
+    rng = np.random.default_rng(8)
+    points, queries = rng.normal(size=(700, 3)), rng.normal(size=(300, 3)) * 2
+    full = np.linalg.norm(queries[:, None] - points[None], axis=2)  # (300, 700)
+    index = PointIndex(points)
+    d, idx = index.neighbours(queries, 5)
+    np.testing.assert_allclose(d, np.sort(full, axis=1)[:, :5], atol=1e-9)
+    np.testing.assert_allclose(np.take_along_axis(full, idx, axis=1), d, atol=1e-9)
+    bounded = index.nearest(queries, bound=0.5)
+    near = full.min(1) <= 0.5
+    np.testing.assert_allclose(bounded[near], full.min(1)[near], atol=1e-9)
+    assert np.all((bounded[~near] > 0.5) | np.isinf(bounded[~near]))
