@@ -68,7 +68,7 @@ class ServiceState:
         return self.engine.scorer if self.engine is not None else None  # type: ignore[return-value]
 
     def load(self) -> None:
-        """Load the model and build the engine (its ICP functions too: Open3D is imported now, not in a request)."""
+        """Load the model and build and warm the engine (Open3D, KISS-Matcher, scipy: loaded now, not in a request)."""
         try:
             self.engine = Engine(load_model(self.settings.model_dir, self.settings.threads, self.settings.precision))
             self.engine.warm_up()
