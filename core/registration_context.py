@@ -120,7 +120,7 @@ class RegistrationContext:
 
     @property
     def confident(self) -> bool:
-        return self.best is not None and self.best.confidence.score >= self.config.threshold
+        return self.best is not None and self.best.confidence.status == "converged"
 
     def evaluate(self, T_unit: Array) -> Confidence:
         with self.timer.stage("confidence"):

@@ -161,3 +161,28 @@ def test_the_point_index_agrees_with_all_pairs_distances(scipy_tree, monkeypatch
     near = full.min(1) <= 0.5
     np.testing.assert_allclose(bounded[near], full.min(1)[near], atol=1e-9)
     assert np.all((bounded[~near] > 0.5) | np.isinf(bounded[~near]))
+
+
+def test_sparse_clouds_need_a_higher_score_to_be_converged():
+    """The bar rises with the spacing relative to the clouds' radius: dense scans keep the base threshold, sparse
+    shapes (ModelNet40's 1024 points: 2.5-8 % of the radius) get SPARSE_THRESHOLD, in between it is linear."""
+    from pranet.core.confidence import (
+        DEFAULT_THRESHOLD,
+        SPARSE_AT,
+        SPARSE_FROM,
+        SPARSE_THRESHOLD,
+        cloud_radius,
+        status_threshold,
+    )
+
+    assert status_threshold(DEFAULT_THRESHOLD, 0.004) == DEFAULT_THRESHOLD
+    assert status_threshold(DEFAULT_THRESHOLD, 0.05) == SPARSE_THRESHOLD
+    middle = status_threshold(DEFAULT_THRESHOLD, (SPARSE_FROM + SPARSE_AT) / 2)
+    assert middle == pytest.approx((DEFAULT_THRESHOLD + SPARSE_THRESHOLD) / 2)
+    assert status_threshold(0.9, 0.05) == 0.9  # never below the base asked for
+    rng = np.random.default_rng(9)
+    dense, sparse = _shape(rng, 20000), _shape(rng, 300)
+    assert 0.9 < cloud_radius(dense) < 1.3  # _shape lies in the unit sphere about the origin, not its centroid
+    e_dense = ConfidenceEstimator(dense, dense, measure_resolution(dense, dense))
+    e_sparse = ConfidenceEstimator(sparse, sparse, measure_resolution(sparse, sparse))
+    assert e_dense.threshold == DEFAULT_THRESHOLD and e_sparse.threshold == SPARSE_THRESHOLD
