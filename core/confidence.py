@@ -32,7 +32,7 @@ from pranet.core.se3 import apply_transform, inverse
 
 # The status threshold; the same threshold ends the request at an exit check and decides whether the global match
 # and the rescues run, so it leans towards recall: a missed failure is not rescued, a false alarm costs time.
-DEFAULT_THRESHOLD = 0.45
+DEFAULT_THRESHOLD = 0.40
 # Sparse clouds (few points over the object, so one spacing is a sizeable part of it) need a higher bar: there an
 # ICP-converged wrong pose looks tight by chance. The threshold rises linearly from DEFAULT_THRESHOLD at a relative
 # spacing (spacing / the clouds' radius) of SPARSE_FROM to SPARSE_THRESHOLD at SPARSE_AT. Measured: the real scans
