@@ -175,11 +175,14 @@ def global_match(ctx: RegistrationContext) -> None:
 
 def rescue(ctx: RegistrationContext) -> None:
     """Rescues of a still unconfident result (beyond the paper): the agent's coarse phase again from six starts
-    30° around the best estimate (batched; the ``refine_top`` most promising are refined), and a wide-window ICP
-    from the input pose. Both run: a wide ICP may be confidently wrong."""
+    30° around the agent's best estimate (batched; the ``refine_top`` most promising are refined), and a wide-window
+    ICP from the input pose. Both run: a wide ICP may be confidently wrong. The restarts centre on the agent's own
+    estimate, not on a global match that scored higher: on sparse partial shapes that one is often far off, and the
+    agent's is near enough for a 30° restart to reach the truth (ModelNet40 partial: docs/DESIGN.md)."""
     c, config = ctx.clouds, ctx.config
-    if config.rescue_restarts and ctx.best is not None:
-        restarts = restart_transforms(ctx.best.T_unit, c.src_n.mean(axis=0), local_rotations())
+    centre = ctx.best_agent or ctx.best
+    if config.rescue_restarts and centre is not None:
+        restarts = restart_transforms(centre.T_unit, c.src_n.mean(axis=0), local_rotations())
         coarse = (ctx.schedule[0],) + (0,) * (len(ctx.schedule) - 1)
         with ctx.timer.stage("target_embedding"):
             batch = batch_score_fn(ctx.scorer, c.tgt_n)

@@ -110,6 +110,7 @@ class RegistrationContext:
     checks: list[tuple[int, float]] = field(default_factory=list)  # exit checks: (agent steps, confidence)
     start_scores: list[float] = field(default_factory=list)  # global mode: each start's quick confidence
     best: Candidate | None = None
+    best_agent: Candidate | None = None  # the most confident of the agent's own candidates (its runs, refined)
     tried: dict[str, float] = field(default_factory=dict)  # candidate name -> its best confidence
 
     @property
@@ -139,6 +140,8 @@ class RegistrationContext:
         self.tried[name] = max(self.tried.get(name, 0.0), candidate.confidence.score)
         if candidate.beats(self.best):
             self.best = candidate
+        if agent_index is not None and candidate.beats(self.best_agent):
+            self.best_agent = candidate
         return candidate
 
     def quick_scores(self, agents: Sequence[AgentResult]) -> list[float]:
