@@ -32,7 +32,7 @@ def clean_l2(clean_source: npt.ArrayLike, T_est: npt.ArrayLike, T_gt: npt.ArrayL
 def _nn_sq_dist(a: Array, b: Array) -> Array:
     """For each row of ``a: (N, 3)``, the squared distance to its nearest row of ``b: (M, 3)``.
 
-    ``core.confidence.nearest_distances``: scipy's KD-tree when installed (the evaluation computes MCD for
+    ``core.nearest.nearest_distances``: scipy's KD-tree when installed (the evaluation computes MCD for
     every method and the Fig. 5 Chamfer curve at every step: brute force was two thirds of its time), else
     chunked numpy brute force.
     """

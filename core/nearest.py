@@ -18,33 +18,6 @@ def subsample(points: npt.ArrayLike, n_max: int, seed: int = 0) -> Array:
     return p[np.sort(np.random.default_rng(seed).choice(len(p), n_max, replace=False))]
 
 
-def nearest_distances(a: Array, b: Array, chunk: int = CHUNK, exclude_self: bool = False) -> Array:
-    """For each row of ``a: (N, 3)``, the distance to its nearest row of ``b: (M, 3)``.
-
-    ``exclude_self``: ``a`` is a subset of ``b`` and a point's zero distance to itself does not count
-    (the second smallest distance is taken). With scipy (the service's dependencies have it) a KD-tree
-    answers: 1024 x 4096 points in about 2 ms instead of 40 ms by brute force (chunked numpy, the fallback).
-    """
-    try:
-        from scipy.spatial import cKDTree
-    except ImportError:  # numpy alone: exact brute force
-        return _nearest_brute_force(a, b, chunk, exclude_self)
-    k = 2 if exclude_self else 1
-    d, _ = cKDTree(b).query(a, k=k)
-    return np.asarray(d[:, 1] if exclude_self else d, dtype=np.float64)
-
-
-def _nearest_brute_force(a: Array, b: Array, chunk: int = CHUNK, exclude_self: bool = False) -> Array:
-    out = np.empty(len(a))
-    bb = (b * b).sum(1)  # (M,)
-    k = 1 if exclude_self else 0
-    for i in range(0, len(a), chunk):
-        x = a[i : i + chunk]  # (c, 3)
-        d2 = (x * x).sum(1)[:, None] - 2.0 * x @ b.T + bb[None]  # (c, M)
-        out[i : i + chunk] = np.partition(d2, k, axis=1)[:, k] if k else d2.min(1)
-    return np.sqrt(np.maximum(out, 0.0))
-
-
 class PointIndex:
     """One cloud ``points: (M, 3)``, indexed once for any number of nearest-neighbour queries: scipy's KD-tree when
     installed (built once: 5-10 ms for a 40k-point scan), else chunked brute force."""
@@ -58,9 +31,6 @@ class PointIndex:
             self._tree = None
         else:
             self._tree = cKDTree(self.points)
-
-    def __len__(self) -> int:
-        return len(self.points)
 
     def neighbours(self, queries: npt.ArrayLike, k: int) -> tuple[Array, npt.NDArray[np.int64]]:
         """The ``k`` nearest points of each row of ``queries: (Q, 3)``, nearest first: distances and indices,
@@ -91,7 +61,11 @@ class PointIndex:
         return self.neighbours(queries, 1)[0][:, 0]
 
 
-def nearest_neighbours(a: Array, b: Array, k: int) -> npt.NDArray[np.int64]:
-    """For each row of ``a: (N, 3)``, the indices of its ``k`` nearest rows of ``b: (M, 3)``, nearest first:
-    ``(N, k)``."""
-    return PointIndex(b).neighbours(a, k)[1]
+def nearest_distances(a: Array, b: Array, chunk: int = CHUNK, exclude_self: bool = False) -> Array:
+    """For each row of ``a: (N, 3)``, the distance to its nearest row of ``b: (M, 3)`` (a one-off ``PointIndex``).
+
+    ``exclude_self``: ``a`` is a subset of ``b`` and a point's zero distance to itself does not count
+    (the second smallest distance is taken).
+    """
+    d, _ = PointIndex(b, chunk).neighbours(a, 2 if exclude_self else 1)
+    return d[:, -1]

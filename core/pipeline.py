@@ -145,22 +145,24 @@ def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -
     with ctx.timer.stage("agent_steps"):
         agents = run_agent_batch(c.src_n, c.tgt_n, score_fn, ctx.scorer.table, ctx.starts, segments[0], **ctx.loop)
     ctx.agents = agents
-    keep = _most_confident(ctx, agents, config.refine_top)
+    ctx.start_scores = ctx.quick_scores(agents)
+    keep = _top(ctx.start_scores, config.refine_top)
     if len(segments) > 1:
         pose = np.stack([agents[b].transform for b in keep])
         with ctx.timer.stage("agent_steps"):
             more = run_agent_batch(c.src_n, c.tgt_n, score_fn, ctx.scorer.table, pose, segments[1], **ctx.loop)
         for b, part in zip(keep, more, strict=True):
             extend(agents[b], part)
-    ctx.start_scores = ctx.quick_scores(agents)
-    ranked = np.argsort(-np.asarray(ctx.start_scores), kind="stable")
-    for b in ranked[: config.refine_top if ctx.icp is not None else 1]:
-        ctx.offer(AGENT, agents[int(b)].transform, agent_index=int(b))
+        # Only the starts that went on moved: the others keep their coarse-phase score.
+        for b, score in zip(keep, ctx.quick_scores([agents[b] for b in keep]), strict=True):
+            ctx.start_scores[b] = score
+    for b in _top(ctx.start_scores, config.refine_top if ctx.icp is not None else 1):
+        ctx.offer(AGENT, agents[b].transform, agent_index=b)
 
 
-def _most_confident(ctx: RegistrationContext, agents: Sequence[AgentResult], k: int) -> list[int]:
-    scores = np.asarray(ctx.quick_scores(agents))
-    return [int(b) for b in np.argsort(-scores, kind="stable")[:k]]
+def _top(scores: Sequence[float], k: int) -> list[int]:
+    """The indices of the ``k`` highest ``scores``, best first (ties: the earlier first)."""
+    return [int(b) for b in np.argsort(-np.asarray(scores), kind="stable")[:k]]
 
 
 def global_match(ctx: RegistrationContext) -> None:
@@ -191,7 +193,7 @@ def rescue(ctx: RegistrationContext) -> None:
         first = len(ctx.agents)
         ctx.agents.extend(more)
         ctx.starts = np.concatenate([ctx.starts, restarts])
-        for k in _most_confident(ctx, more, config.refine_top):
+        for k in _top(ctx.quick_scores(more), config.refine_top):
             ctx.offer(RESTARTS, more[k].transform, agent_index=first + k)
     if ctx.wide_icp is not None and not ctx.confident:
         with ctx.timer.stage("icp"):

@@ -132,9 +132,9 @@ class RegistrationContext:
         with self.timer.stage("icp"):
             return self.icp(self.clouds.src_unit, self.clouds.tgt_unit, T_unit, self.clouds.resolution)
 
-    def offer(self, name: str, T_unit: Array, agent_index: int | None = None, refine: bool = True) -> Candidate:
-        """Refine ``T_unit`` (when ICP is on and ``refine``), score it, and keep it if it beats ``best``."""
-        refined = self.refine(T_unit) if refine and self.icp is not None else None
+    def offer(self, name: str, T_unit: Array, agent_index: int | None = None) -> Candidate:
+        """Refine ``T_unit`` (when ICP is on), score it, and keep it if it beats ``best``."""
+        refined = self.refine(T_unit) if self.icp is not None else None
         T = refined.transform if refined is not None else T_unit
         candidate = Candidate(self.evaluate(T), name, T, refined, agent_index)
         self.tried[name] = max(self.tried.get(name, 0.0), candidate.confidence.score)

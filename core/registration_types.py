@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -23,7 +24,8 @@ AGENT = "agent"  # the agent from the input pose (or, with init="global", from t
 GLOBAL_MATCH = "global_match"  # the classical global match (features + robust solver), refined
 RESTARTS = "restarts"  # the agent's coarse phase again from starts around the best estimate
 WIDE_ICP = "wide_icp"  # ICP with a wide window from the input pose
-CANDIDATES = (AGENT, GLOBAL_MATCH, RESTARTS, WIDE_ICP)
+CandidateName = Literal["agent", "global_match", "restarts", "wide_icp"]  # the wire's names (the response's)
+CANDIDATES: tuple[str, ...] = get_args(CandidateName)
 
 
 @dataclass(frozen=True)

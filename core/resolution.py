@@ -28,16 +28,14 @@ FLATNESS_PROBES = 500  # points whose neighbourhood's out-of-plane spread is mea
 FLATNESS_NEIGHBOURS = 16
 
 
-def median_spacing(
-    points: npt.ArrayLike, probes: int = SPACING_PROBES, seed: int = 0, index: PointIndex | None = None
-) -> float:
+def median_spacing(points: npt.ArrayLike | PointIndex, probes: int = SPACING_PROBES, seed: int = 0) -> float:
     """The median distance from a point of ``points: (N, 3)`` to its nearest other point (0 if all coincide).
 
     Measured for ``probes`` fixed-seed points against the whole cloud; repeated points (distance 0) are skipped:
     each probe's spacing is the distance to its nearest point elsewhere (among its ``DUPLICATE_NEIGHBOURS``
     nearest), so a cloud with repeated rows still reports its sampling density.
     """
-    index = index or PointIndex(points)
+    index = points if isinstance(points, PointIndex) else PointIndex(points)
     probe = subsample(index.points, probes, seed=seed)  # (P, 3)
     d, _ = index.neighbours(probe, DUPLICATE_NEIGHBOURS)  # (P, k), nearest first
     d = np.where(d > 0, d, np.inf).min(axis=1)
@@ -45,13 +43,7 @@ def median_spacing(
     return float(np.median(positive)) if len(positive) else 0.0
 
 
-def flatness(
-    points: npt.ArrayLike,
-    spacing: float,
-    probes: int = FLATNESS_PROBES,
-    seed: int = 0,
-    index: PointIndex | None = None,
-) -> float:
+def flatness(points: npt.ArrayLike | PointIndex, spacing: float, probes: int = FLATNESS_PROBES, seed: int = 0) -> float:
     """How far the surface is from planar at its own resolution: the median, over ``probes`` fixed-seed points of
     ``points: (N, 3)``, of the out-of-plane standard deviation of their ``FLATNESS_NEIGHBOURS`` nearest neighbours
     (the square root of the neighbourhood covariance's smallest eigenvalue), in spacings.
@@ -60,7 +52,7 @@ def flatness(
     of CAD shapes (sparse against their curvature) and about 0.5 on RGB-D fragments (sensor noise): where it is
     large, a point's estimated normal says little about the surface and point-to-plane ICP cannot finish precisely.
     """
-    index = index or PointIndex(points)
+    index = points if isinstance(points, PointIndex) else PointIndex(points)
     p = index.points
     if spacing <= 0 or len(p) < FLATNESS_NEIGHBOURS:
         return float("inf")
@@ -101,5 +93,5 @@ def measure_resolution(source: Array | PointIndex, target: Array | PointIndex) -
     indexes, built once per registration), so that every scale resolves both clouds, and the target's flatness."""
     src = source if isinstance(source, PointIndex) else PointIndex(source)
     tgt = target if isinstance(target, PointIndex) else PointIndex(target)
-    spacing = max(median_spacing(src.points, seed=0, index=src), median_spacing(tgt.points, seed=1, index=tgt))
-    return Resolution(spacing, flatness(tgt.points, spacing, index=tgt))
+    spacing = max(median_spacing(src, seed=0), median_spacing(tgt, seed=1))
+    return Resolution(spacing, flatness(tgt, spacing))

@@ -11,11 +11,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import ParamSpec, TypeVar
 
 OTHER = "other"
-P = ParamSpec("P")
-R = TypeVar("R")
 
 
 class StageTimer:
@@ -43,15 +40,6 @@ class StageTimer:
         finally:
             self._charge(self._clock())
             self._stack.pop()
-
-    def timed(self, name: str, fn: Callable[P, R]) -> Callable[P, R]:
-        """``fn`` whose every call is timed as ``name``."""
-
-        def call(*args: P.args, **kwargs: P.kwargs) -> R:
-            with self.stage(name):
-                return fn(*args, **kwargs)
-
-        return call
 
     def report(self) -> dict[str, float]:
         """Milliseconds per stage so far, and their ``total`` (the time since the timer was made)."""

@@ -55,7 +55,7 @@ def global_match(source: Array, target: Array, resolution: Resolution, seed: int
     ``MIN_VOXELS`` voxels."""
     if not enough_voxels(source, target, resolution):
         return None
-    T = kiss_matcher_global_match(source, target, resolution, seed)
+    T = _kiss_matcher(source, target, resolution, seed)
     return T if T is not None else ransac_global_match(source, target, resolution, seed)
 
 
@@ -63,10 +63,15 @@ def kiss_matcher_global_match(source: Array, target: Array, resolution: Resoluti
     """``T_target_source`` (4, 4) of ``source: (N, 3)`` onto ``target: (M, 3)`` from any initial pose, or ``None``
     when KISS-Matcher finds no consistent set of matches. ``seed`` picks the subset of clouds over ``MAX_POINTS``
     (the solver itself is deterministic)."""
+    if not enough_voxels(source, target, resolution):  # it would crash on a handful of voxels
+        return None
+    return _kiss_matcher(source, target, resolution, seed)
+
+
+def _kiss_matcher(source: Array, target: Array, resolution: Resolution, seed: int) -> Array | None:
+    """KISS-Matcher on clouds already known to cover enough voxels."""
     import kiss_matcher
 
-    if not enough_voxels(source, target, resolution):  # also when called on its own: it would crash
-        return None
     scale = SCALED_VOXEL / resolution.voxel
     config = kiss_matcher.KISSMatcherConfig(SCALED_VOXEL, fpfh_r_gain=FEATURE_VOXELS)
     matcher = kiss_matcher.KISSMatcher(config)

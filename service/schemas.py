@@ -11,6 +11,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag
 
 from pranet.core.registration_config import SERVICE_DEFAULT
+from pranet.core.registration_types import CandidateName
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
 from pranet.core.wire import BYTES_PER_POINT, ENCODING, encoded_length
 
@@ -212,7 +213,7 @@ class RegisterResponse(BaseModel):
         description="which rescue won over the agent's result (null: none ran or none was more confident); with "
         "'restarts' the trajectory and initial_transform are the winning restart's",
     )
-    candidate: Literal["agent", "global_match", "restarts", "wide_icp"] = Field(
+    candidate: CandidateName = Field(
         "agent",
         description="which candidate won: 'agent' (the agent's estimate, refined by ICP), 'global_match' (the "
         "classical global match, for any initial pose, refined by ICP), 'restarts' or 'wide_icp' (the rescues)",
