@@ -130,6 +130,20 @@ def _registration_options(parser: argparse.ArgumentParser) -> None:
         help="do not try the classical global match when the agent is not confident",
     )
     parser.add_argument(
+        "--paper-steps",
+        dest="walk",
+        action="store_false",
+        default=None,
+        help="a network call per agent step, as the paper (default: walk toward each estimate between calls)",
+    )
+    parser.add_argument(
+        "--no-polish",
+        dest="polish",
+        action="store_false",
+        default=None,
+        help="do not refine the winning result with generalized ICP",
+    )
+    parser.add_argument(
         "--init",
         choices=("identity", "global"),
         help="agent start: identity (server default; rotations up to 60°) or global (many starts, any rotation)",
@@ -149,6 +163,8 @@ def _options_of(args: argparse.Namespace) -> dict[str, Any]:
         "exit_checks": args.exit_checks,
         "rescue": args.rescue,
         "global_match": args.global_match,
+        "walk": args.walk,
+        "polish": args.polish,
         "init": args.init,
         "starts": args.starts,
     }

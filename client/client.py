@@ -89,6 +89,7 @@ class RegistrationResult:
     candidate: str | None = None  # which candidate won: "agent", "global_match", "restarts" or "wide_icp"
     candidates: dict[str, float] = field(default_factory=dict)  # every candidate tried -> its best confidence
     spacing: float | None = None  # the data's resolution (median nearest-neighbour distance), input units
+    network_calls: int | None = None  # source poses the reward network scored
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -126,6 +127,7 @@ class RegistrationResult:
             candidate=body.get("candidate"),
             candidates=dict(body.get("candidates") or {}),
             spacing=body.get("spacing"),
+            network_calls=body.get("network_calls"),
             raw=body,
         )
 
@@ -256,8 +258,8 @@ class PranetClient:
         """Register ``source`` onto ``target``: arrays ``(N, 3)`` / ``(M, 3)`` or point cloud file paths.
 
         ``options`` are passed through to the service (``policy``, ``early_stop``, ``seed``, ``steps``,
-        ``exit_checks``, ``rescue``, ``global_match``, ``return_trajectory``, ``init``, ``starts``); ``None`` values
-        are left out so the server's defaults apply.
+        ``exit_checks``, ``rescue``, ``global_match``, ``walk``, ``polish``, ``return_trajectory``, ``init``,
+        ``starts``); ``None`` values are left out so the server's defaults apply.
         """
         payload: dict[str, Any] = {
             "source": encode_cloud(load_cloud(source), self.compact_threshold),

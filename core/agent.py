@@ -13,6 +13,15 @@ translations on ``c``. The returned transforms are ``T_target_source`` in the fr
 
 ``run_agent_batch`` runs the same loop from several start poses at once (the global mode), with one
 ``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` call per step.
+
+The walk (``walk_steps > 0``, beyond the paper): a network with the analytic reward layer computes its 24 rewards
+in closed form from one estimated residual pose, so as long as that estimate stands the greedy steps toward it
+need no network. ``pose_fn(sources (B, N, 3), target) -> (R_err (B, 3, 3), t_err (B, 3))`` gives the estimate
+(the state of ``core.reward``); the loop keeps it as a goal pose per start, scores the actions toward it with
+``core.reward.true_rewards`` (the same numbers the network's layer would give), and asks the network again
+only when the walk has arrived (no step of the scale brings it nearer) or after ``walk_steps`` steps on one
+estimate. A fresh estimate with no improving step ends the scale: what follows would be the paper's
+oscillation about it. ``walk_steps = 0`` is the paper's protocol, a network call per step.
 """
 
 from __future__ import annotations
@@ -25,12 +34,16 @@ import numpy as np
 import numpy.typing as npt
 
 from pranet.core.actions import DEFAULT_SCHEDULE, ActionTable
+from pranet.core.reward import true_rewards
 from pranet.core.se3 import Array, make_transform
 
 ScoreFn = Callable[[Array, Array], npt.NDArray[np.floating]]
 # batch_score_fn(sources (B, N, 3), target (M, 3)) -> rewards (B, A): the B rows are the same source point
 # set in B poses (the starts of one registration), scored in one call.
 BatchScoreFn = Callable[[Array, Array], npt.NDArray[np.floating]]
+# batch_pose_fn(sources (B, N, 3), target (M, 3)) -> (R_err (B, 3, 3), t_err (B, 3)): the network's estimate of
+# each row's residual pose (rotation still to apply about the row's centroid, translation still to add to it).
+BatchPoseFn = Callable[[Array, Array], tuple[Array, Array]]
 POLICIES = ("deterministic", "stoch1", "stoch2")
 STOCH1_PROBABILITIES = np.array([0.85, 0.15, 0.05])  # paper's numbers; they sum to 1.05, so normalised
 
@@ -82,12 +95,15 @@ def run_agent(
     early_stop: bool = False,
     initial_transform: npt.ArrayLike | None = None,
     deadline: float | None = None,
+    pose_fn: BatchPoseFn | None = None,
+    walk_steps: int = 0,
 ) -> AgentResult:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)``; returns ``T_target_source`` and the trajectory.
 
     ``schedule[i]`` is the number of steps at scale ``i``. With ``early_stop``, a scale ends as soon
     as no action of it has a positive predicted reward. ``deadline`` (``time.monotonic()`` seconds):
-    raise ``AgentTimeout`` once it has passed, checked before every step.
+    raise ``AgentTimeout`` once it has passed, checked before every step. ``pose_fn`` and ``walk_steps``: the
+    walk (module docstring); without ``pose_fn`` every step calls ``score_fn``.
     """
     T0 = np.eye(4) if initial_transform is None else np.asarray(initial_transform, dtype=np.float64)
     # The batched loop with one start; the single score_fn is called once per step as before.
@@ -102,6 +118,8 @@ def run_agent(
         rng=rng,
         early_stop=early_stop,
         deadline=deadline,
+        pose_fn=pose_fn,
+        walk_steps=walk_steps,
     )[0]
 
 
@@ -116,13 +134,16 @@ def run_agent_batch(
     rng: np.random.Generator | None = None,
     early_stop: bool = False,
     deadline: float | None = None,
+    pose_fn: BatchPoseFn | None = None,
+    walk_steps: int = 0,
 ) -> list[AgentResult]:
     """``run_agent`` from each of ``initial_transforms: (B, 4, 4)`` at once: one ``batch_score_fn`` call per step.
 
     Start ``b`` follows exactly the steps ``run_agent(..., initial_transform=initial_transforms[b])``
     takes with the same rewards (deterministic policy). With ``early_stop``, a start whose scale ended
     leaves the batch until the next scale (the batch shrinks). Stochastic policies draw from the one
-    ``rng`` in start order at each step, so their draws differ from ``B`` separate runs.
+    ``rng`` in start order at each step, so their draws differ from ``B`` separate runs. With ``pose_fn`` and
+    ``walk_steps > 0`` the rows are scored by the walk (module docstring): ``batch_score_fn`` is not called.
     """
     if len(schedule) != len(table.scales):
         raise ValueError(f"schedule has {len(schedule)} phases but the action table has {len(table.scales)} scales")
@@ -135,6 +156,7 @@ def run_agent_batch(
     c = np.stack([T[:3, :3] @ m + T[:3, 3] for T in T0])  # (B, 3) where each start's source centroid is now
     results = [AgentResult(transform=T.copy()) for T in T0]
     steps = [0] * len(T0)
+    walk = PoseWalk(pose_fn, table, walk_steps) if pose_fn is not None and walk_steps > 0 else None
     for scale, n_steps in enumerate(schedule):
         idx = table.indices_of_scale(scale)
         active = list(range(len(T0)))
@@ -144,10 +166,15 @@ def run_agent_batch(
             if deadline is not None and time.monotonic() > deadline:
                 raise AgentTimeout(f"registration exceeded its time limit after {max(steps)} steps")
             current = np.stack([centered @ R[b].T + c[b] for b in active])  # (B_active, N, 3)
-            rewards_all = np.asarray(batch_score_fn(current, target), dtype=np.float64)[:, idx]  # (B_active, A_s)
+            if walk is not None:
+                rewards_all = walk.rewards(active, R, c, current, target, idx)
+            else:
+                rewards_all = np.asarray(batch_score_fn(current, target), dtype=np.float64)[:, idx]  # (B_active, A_s)
             still = []
             for b, rewards in zip(active, rewards_all, strict=True):
-                if early_stop and rewards.max() <= 0.0:
+                # The walk's rewards are never all <= 0 on a stale estimate (it asks again first): a fresh one ends
+                # the scale.
+                if (early_stop or walk is not None) and rewards.max() <= 0.0:
                     results[b].stopped_early.append(steps[b])
                     continue
                 a = int(idx[choose_action(rewards, policy, rng)])
@@ -163,6 +190,43 @@ def run_agent_batch(
     return results
 
 
+class PoseWalk:
+    """The walk's goals: per start, the pose the network's last estimate says the source should reach
+    (``R_goal`` applied to the centred source, its centroid at ``c_goal``), and the steps taken since."""
+
+    def __init__(self, pose_fn: BatchPoseFn, table: ActionTable, walk_steps: int) -> None:
+        self.pose_fn, self.table, self.walk_steps = pose_fn, table, walk_steps
+        self.R_goal: dict[int, Array] = {}
+        self.c_goal: dict[int, Array] = {}
+        self.age: dict[int, int] = {}
+
+    def toward(self, rows: Sequence[int], R: Array, c: Array, idx: Array) -> Array:
+        """Exact rewards ``(len(rows), A_s)`` of the scale's actions ``idx`` toward each row's goal: the residual is
+        ``R_goal @ R.T`` about the current centroid and ``c_goal - c``."""
+        R_res = np.stack([self.R_goal[b] @ R[b].T for b in rows])
+        t_res = np.stack([self.c_goal[b] - c[b] for b in rows])
+        return true_rewards(R_res, t_res, self.table)[:, idx]
+
+    def rewards(self, rows: Sequence[int], R: Array, c: Array, current: Array, target: Array, idx: Array) -> Array:
+        """The rewards of ``rows`` (start indices; ``current`` holds their points in that order) at their poses
+        ``R[b], c[b]``, asking the network again for rows without a goal, past ``walk_steps`` on one estimate, or
+        arrived (no action of the scale improves)."""
+        known = [i for i, b in enumerate(rows) if b in self.R_goal and self.age[b] < self.walk_steps]
+        stale = set(range(len(rows))) - set(known)
+        if known:
+            arrived = self.toward([rows[i] for i in known], R, c, idx).max(axis=1) <= 0.0
+            stale |= {i for i, done in zip(known, arrived, strict=True) if done}
+        ask = sorted(stale)
+        if ask:
+            R_err, t_err = self.pose_fn(current[ask], target)
+            for i, R_e, t_e in zip(ask, np.asarray(R_err, np.float64), np.asarray(t_err, np.float64), strict=True):
+                b = rows[i]
+                self.R_goal[b], self.c_goal[b], self.age[b] = R_e @ R[b], c[b] + t_e, 0
+        for b in rows:
+            self.age[b] += 1
+        return self.toward(rows, R, c, idx)
+
+
 def batch_from_single(score_fn: ScoreFn) -> BatchScoreFn:
     """A ``BatchScoreFn`` that calls ``score_fn`` once per row (for scorers without a batched runtime)."""
 
@@ -170,6 +234,31 @@ def batch_from_single(score_fn: ScoreFn) -> BatchScoreFn:
         return np.stack([np.asarray(score_fn(s, target), dtype=np.float64) for s in sources])
 
     return score
+
+
+def oracle_pose_fn(T_gt: npt.ArrayLike, source: npt.ArrayLike) -> BatchPoseFn:
+    """A perfect ``batch_pose_fn`` from the true ``T_gt`` (target = T_gt · source): each row's exact residual.
+    Counts its calls (rows) in ``pose.calls``."""
+    T_gt = np.asarray(T_gt, dtype=np.float64)
+    source = np.asarray(source, dtype=np.float64)
+    m = source.mean(axis=0)
+    goal = T_gt[:3, :3] @ m + T_gt[:3, 3]
+    calls = [0]
+
+    def pose(currents: Array, _target: Array) -> tuple[Array, Array]:
+        R_now = [_kabsch(source - m, cur - cur.mean(axis=0)) for cur in currents]
+        calls[0] += len(currents)
+        return np.stack([T_gt[:3, :3] @ R.T for R in R_now]), np.stack([goal - cur.mean(axis=0) for cur in currents])
+
+    pose.calls = calls  # type: ignore[attr-defined]
+    return pose
+
+
+def _kabsch(a: Array, b: Array) -> Array:
+    """The rotation taking centred ``a: (N, 3)`` onto centred ``b: (N, 3)``."""
+    U, _, Vt = np.linalg.svd(a.T @ b)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    return Vt.T @ D @ U.T
 
 
 def oracle_score_fn(T_gt: npt.ArrayLike, source: npt.ArrayLike, table: ActionTable) -> ScoreFn:
@@ -187,10 +276,7 @@ def oracle_score_fn(T_gt: npt.ArrayLike, source: npt.ArrayLike, table: ActionTab
     def score(current: Array, _target: Array) -> Array:
         # Current pose from the moved points: R_now by Kabsch on centered points, c = their mean.
         c = current.mean(axis=0)
-        H = (source - m).T @ (current - c)
-        U, _, Vt = np.linalg.svd(H)
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-        R_now = Vt.T @ D @ U.T
+        R_now = _kabsch(source - m, current - c)
         return true_rewards(T_gt[:3, :3] @ R_now.T, goal - c, table)
 
     return score

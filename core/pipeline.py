@@ -38,6 +38,7 @@ from pranet.core.registration_types import (
     WIDE_ICP,
     GlobalMatchFn,
     IcpFn,
+    PolishFn,
     Registration,
 )
 from pranet.core.stage_timer import StageTimer
@@ -47,7 +48,7 @@ __all__ = ["register", "prepare", "split_schedule", "batch_score_fn", "STAGES"]
 
 # The stages of ``Registration.timing_ms`` (exclusive: ICP and confidence calls count as themselves wherever they
 # run), which with ``other`` (``core.stage_timer``) add up to its ``total``.
-STAGES = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence", "global_match", "rescue")
+STAGES = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence", "global_match", "rescue", "polish")
 
 
 def batch_score_fn(scorer: Scorer, target: npt.ArrayLike) -> BatchScoreFn:
@@ -122,7 +123,13 @@ def agent_from_input_pose(ctx: RegistrationContext, score_fn: ScoreFn, until: in
     for segment, scheduled in zip(segments, _scheduled_ends(ctx.agent_scheduled, segments), strict=True):
         with ctx.timer.stage("agent_steps"):
             part = run_agent(
-                c.src_n, c.tgt_n, score_fn, ctx.scorer.table, segment, initial_transform=agent.transform, **ctx.loop
+                c.src_n,
+                c.tgt_n,
+                score_fn,
+                ctx.scorer.table,
+                segment,
+                initial_transform=agent.transform,
+                **ctx.loop(score_fn),
             )
         extend(agent, part)
         ctx.agent_scheduled = scheduled
@@ -143,14 +150,18 @@ def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -
     ctx.starts = start_transforms(start_rotations(config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
     segments = split_schedule(ctx.schedule, (ctx.schedule[0],))
     with ctx.timer.stage("agent_steps"):
-        agents = run_agent_batch(c.src_n, c.tgt_n, score_fn, ctx.scorer.table, ctx.starts, segments[0], **ctx.loop)
+        agents = run_agent_batch(
+            c.src_n, c.tgt_n, score_fn, ctx.scorer.table, ctx.starts, segments[0], **ctx.loop(score_fn)
+        )
     ctx.agents = agents
     ctx.start_scores = ctx.quick_scores(agents)
     keep = _top(ctx.start_scores, config.refine_top)
     if len(segments) > 1:
         pose = np.stack([agents[b].transform for b in keep])
         with ctx.timer.stage("agent_steps"):
-            more = run_agent_batch(c.src_n, c.tgt_n, score_fn, ctx.scorer.table, pose, segments[1], **ctx.loop)
+            more = run_agent_batch(
+                c.src_n, c.tgt_n, score_fn, ctx.scorer.table, pose, segments[1], **ctx.loop(score_fn)
+            )
         for b, part in zip(keep, more, strict=True):
             extend(agents[b], part)
         # Only the starts that went on moved: the others keep their coarse-phase score.
@@ -188,8 +199,9 @@ def rescue(ctx: RegistrationContext) -> None:
         coarse = (ctx.schedule[0],) + (0,) * (len(ctx.schedule) - 1)
         with ctx.timer.stage("target_embedding"):
             batch = batch_score_fn(ctx.scorer, c.tgt_n)
+            ctx.scorers.append(batch)
         with ctx.timer.stage("agent_steps"):
-            more = run_agent_batch(c.src_n, c.tgt_n, batch, ctx.scorer.table, restarts, coarse, **ctx.loop)
+            more = run_agent_batch(c.src_n, c.tgt_n, batch, ctx.scorer.table, restarts, coarse, **ctx.loop(batch))
         first = len(ctx.agents)
         ctx.agents.extend(more)
         ctx.starts = np.concatenate([ctx.starts, restarts])
@@ -199,6 +211,19 @@ def rescue(ctx: RegistrationContext) -> None:
         with ctx.timer.stage("icp"):
             wide = ctx.wide_icp(c.src_unit, c.tgt_unit, np.eye(4), c.resolution)
         ctx.offer(WIDE_ICP, wide.transform)
+
+
+def polish(ctx: RegistrationContext) -> None:
+    """The winner refined once more (``PolishFn``), kept unless that costs it its status or its confidence: the
+    polish is finer, not a new candidate."""
+    assert ctx.polish is not None and ctx.best is not None
+    c, best = ctx.clouds, ctx.best
+    T = ctx.polish(c.src_unit, c.tgt_unit, best.T_unit, c.resolution)
+    if T is None:
+        return
+    confidence = ctx.evaluate(T)
+    if confidence.status == "converged" or confidence.score >= best.confidence.score:
+        ctx.best = replace(best, confidence=confidence, T_unit=T)
 
 
 def register(
@@ -212,13 +237,15 @@ def register(
     deadline: float | None = None,
     global_match_fn: GlobalMatchFn | None = None,
     seed: int = 0,
+    polish_fn: PolishFn | None = None,
 ) -> Registration:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)`` (any units) as ``config`` says; returns
     ``T_target_source`` (target ≈ R @ source + t) and the agent's own estimate, both in world units.
 
     ``icp``: the refinement (``None`` = PRANet-v1, whatever ``config.icp_stages`` say: the engine builds it from
     them); ``rescue_icp``: the wide ICP of the rescue; ``global_match_fn``: the classical global candidate
-    (``None`` = off; it runs only when ``config.global_match``); ``seed``: the global match's. Raises
+    (``None`` = off; it runs only when ``config.global_match``); ``seed``: the global match's; ``polish_fn``: the
+    last refinement of the winner (runs only with ICP and ``config.polish``). Raises
     ``DegenerateCloudError`` (a ``ValueError``) for unusable input and ``AgentTimeout`` past ``deadline``
     (``time.monotonic()`` seconds).
     """
@@ -239,12 +266,14 @@ def register(
         icp=icp,
         wide_icp=rescue_icp if icp is not None else None,
         global_match=global_match_fn if icp is not None and config.global_match else None,
+        polish=polish_fn if icp is not None and config.polish else None,
         deadline=deadline,
     )
     wide_search = config.init == "global"
     # 2. Embed the target once for this registration (tiled over the starts in global mode).
     with timer.stage("target_embedding"):
         score_fn = batch_score_fn(scorer, clouds.tgt_n) if wide_search else scorer.score_fn(clouds.tgt_n)
+    ctx.scorers.append(score_fn)
     if wide_search:
         # 3. The wide search: the agent from every global start, and the global match beside it.
         agent_from_global_starts(ctx, score_fn)
@@ -265,7 +294,11 @@ def register(
     if icp is not None and not wide_search and not ctx.confident:
         with timer.stage("rescue"):
             rescue(ctx)
-    # 7. Back to world units.
+    # 7. The winner's polish.
+    if ctx.polish is not None:
+        with timer.stage("polish"):
+            polish(ctx)
+    # 8. Back to world units.
     return to_world(ctx)
 
 
@@ -300,4 +333,5 @@ def to_world(ctx: RegistrationContext) -> Registration:
         candidates=dict(ctx.tried),
         resolution=c.resolution.scaled(1.0 / norm.scale),
         n_used=(len(c.src_unit), len(c.tgt_unit)),
+        network_calls=ctx.network_calls,
     )

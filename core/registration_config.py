@@ -31,6 +31,9 @@ ICP_REFINE_WINDOW = 2.0
 # The rescue's wide ICP from the input pose: a window of half the unit sphere (the ICP baseline's), a fraction of
 # the clouds' extent rather than of their spacing.
 RESCUE_WINDOW = 0.5
+# The service's agent walks up to this many steps toward one estimated pose before asking the network again
+# (``core.agent``): validation pairs, docs/DESIGN.md, "The walk".
+WALK_STEPS = 10
 
 
 def check_icp_stages(stages: tuple[IcpStage, ...]) -> None:
@@ -67,6 +70,10 @@ class RegistrationConfig:
     the result stays below ``threshold``, and ``rescue_restarts`` reruns the coarse phase from six starts 30°
     around the best estimate. ``init="global"`` starts the agent from ``n_starts`` rotations and refines the
     ``refine_top`` most confident. ``schedule``: steps per step-size scale (``None`` = the model's).
+    ``walk_steps``: 0 = the paper's protocol, a network call per step; ``k > 0`` = walk up to ``k`` steps toward
+    one estimated pose in closed form before asking the network again (``core.agent``; models with the analytic
+    reward layer only, others call it every step). ``polish``: with ICP, refine the winning candidate once more
+    (small_gicp's GICP where the surface is smooth at its resolution; ``engine.polish``).
     """
 
     icp_stages: tuple[IcpStage, ...] = ()
@@ -81,6 +88,8 @@ class RegistrationConfig:
     policy: str = "deterministic"
     early_stop: bool = False
     schedule: tuple[int, ...] | None = None
+    walk_steps: int = 0
+    polish: bool = False
 
     def __post_init__(self) -> None:
         check_icp_stages(self.icp_stages)
@@ -94,6 +103,8 @@ class RegistrationConfig:
             raise ValueError(f"n_starts must be in [1, {MAX_STARTS}], got {self.n_starts}")
         if self.refine_top < 1:
             raise ValueError(f"refine_top must be >= 1, got {self.refine_top}")
+        if self.walk_steps < 0:
+            raise ValueError(f"walk_steps must be >= 0, got {self.walk_steps}")
 
     @property
     def refines(self) -> bool:
@@ -112,5 +123,10 @@ PAPER_V2 = RegistrationConfig(icp_stages=DEFAULT_ICP_STAGES)
 # The service's default request: v2 with exit checks after the coarse phase and halfway through the fine one,
 # the global match when the agent is not sure, and both rescues of a still unconfident result.
 SERVICE_DEFAULT = PAPER_V2.with_(
-    exit_checks=(20, 40), global_match=True, rescue_window=RESCUE_WINDOW, rescue_restarts=True
+    exit_checks=(20, 40),
+    global_match=True,
+    rescue_window=RESCUE_WINDOW,
+    rescue_restarts=True,
+    walk_steps=WALK_STEPS,
+    polish=True,
 )

@@ -21,7 +21,7 @@ from pranet.core.confidence import Confidence, ConfidenceEstimator
 from pranet.core.nearest import PointIndex, subsample
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
 from pranet.core.registration_config import RegistrationConfig
-from pranet.core.registration_types import Candidate, GlobalMatchFn, IcpFn
+from pranet.core.registration_types import Candidate, GlobalMatchFn, IcpFn, PolishFn
 from pranet.core.resolution import Resolution, measure_resolution
 from pranet.core.se3 import Array
 from pranet.core.stage_timer import StageTimer
@@ -102,6 +102,7 @@ class RegistrationContext:
     icp: IcpFn | None = None  # the refinement at the data's resolution (None: PRANet-v1)
     wide_icp: IcpFn | None = None  # the wide-window ICP of the rescue
     global_match: GlobalMatchFn | None = None
+    polish: PolishFn | None = None
     deadline: float | None = None
     # Filled in by the stages:
     starts: Array = field(default_factory=lambda: np.eye(4)[None])  # (B, 4, 4) every agent run's start, unit frame
@@ -112,12 +113,26 @@ class RegistrationContext:
     best: Candidate | None = None
     best_agent: Candidate | None = None  # the most confident of the agent's own candidates (its runs, refined)
     tried: dict[str, float] = field(default_factory=dict)  # candidate name -> its best confidence
+    scorers: list[object] = field(default_factory=list)  # the score functions made (their ``calls``, when counted)
 
     @property
-    def loop(self) -> dict:
-        """The agent loop's keyword arguments."""
+    def network_calls(self) -> int:
+        """Full network evaluations so far, from the score functions that count them (``RewardModel``'s do)."""
+        return sum(int(getattr(fn, "calls", {}).get("full", 0)) for fn in self.scorers)
+
+    def loop(self, score_fn: object) -> dict:
+        """The agent loop's keyword arguments when it scores with ``score_fn`` (its ``pose``, when the model has
+        one, is what the walk asks)."""
         c = self.config
-        return {"policy": c.policy, "rng": self.rng, "early_stop": c.early_stop, "deadline": self.deadline}
+        pose_fn = getattr(score_fn, "pose", None)
+        return {
+            "policy": c.policy,
+            "rng": self.rng,
+            "early_stop": c.early_stop,
+            "deadline": self.deadline,
+            "pose_fn": pose_fn,
+            "walk_steps": c.walk_steps,
+        }
 
     @property
     def confident(self) -> bool:

@@ -40,6 +40,9 @@ IcpFn = Callable[[Array, Array, Array, Resolution], IcpResult]
 # global_match(source_unit (N, 3), target_unit (M, 3), resolution (unit frame), seed) -> T_target_source (4, 4),
 # from any initial pose; None when it finds no answer.
 GlobalMatchFn = Callable[[Array, Array, Resolution, int], "Array | None"]
+# polish(source_unit, target_unit, T_target_source (4, 4), resolution) -> a finer T_target_source, or None where
+# the data does not suit it: the last refinement of the winning candidate only.
+PolishFn = Callable[[Array, Array, Array, Resolution], "Array | None"]
 
 
 @dataclass(frozen=True)
@@ -77,6 +80,7 @@ class Registration:
     candidates: dict[str, float] = field(default_factory=dict)  # every candidate tried -> its best confidence
     resolution: Resolution | None = None  # the data's resolution, world units
     n_used: tuple[int, int] = (0, 0)  # points of (source, target) the registration worked on (after the cap)
+    network_calls: int = 0  # source poses the reward network scored (full evaluations; the head-only ones not)
 
     @property
     def rescued(self) -> str | None:

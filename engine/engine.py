@@ -16,9 +16,10 @@ import numpy.typing as npt
 from pranet.core.pipeline import register
 from pranet.core.registration_config import POINT_TO_POINT, SERVICE_DEFAULT, IcpStage, RegistrationConfig
 from pranet.core.registration_context import Scorer
-from pranet.core.registration_types import GlobalMatchFn, IcpFn, Registration
+from pranet.core.registration_types import GlobalMatchFn, IcpFn, PolishFn, Registration
 from pranet.engine.global_match import global_match as default_global_match
 from pranet.engine.icp import make_icp
+from pranet.engine.polish import make_polish
 
 IcpFactory = Callable[..., IcpFn]  # (stages, window_unit=...) -> IcpFn
 
@@ -33,10 +34,12 @@ class Engine:
         scorer: Scorer,
         icp_factory: IcpFactory = make_icp,
         global_match: GlobalMatchFn = default_global_match,
+        polish: PolishFn | None = None,
     ) -> None:
         self.scorer = scorer
         self._icp_factory = icp_factory
         self._global_match = global_match
+        self._polish = polish if polish is not None else make_polish()
         self._icps: dict[tuple[tuple[IcpStage, ...], str], IcpFn] = {}
         self._lock = threading.Lock()
 
@@ -100,4 +103,5 @@ class Engine:
             deadline=deadline,
             global_match_fn=self._global_match,
             seed=seed,
+            polish_fn=self._polish,
         )

@@ -12,6 +12,8 @@ translated source has the same features, attention and soft correspondences; onl
 fed to the heads changes. ``score.onnx`` also returns those pair features, and when a source's centred
 points equal a row of the previous call's (to ``SAME_SHAPE_ATOL``: the last action was a translation),
 it is re-scored with ``head.onnx`` (the heads alone, microseconds) instead of the whole network.
+For a network with the analytic reward layer, the score function's ``pose`` gives the estimated residual pose
+itself (``core.agent``'s walk), from the same call.
 The rewards agree with a full call to float32 rounding (``tests/model/test_export_runtime.py``). Model
 directories without ``head.onnx`` (exported before it) run every step through ``score.onnx``.
 
@@ -226,6 +228,7 @@ class RewardModel:
             return batched(np.asarray(source)[None], _target)[0]
 
         score.calls = batched.calls  # type: ignore[attr-defined]
+        score.pose = batched.pose  # type: ignore[attr-defined]
         return score
 
     def batch_score_fn(self, target: npt.ArrayLike) -> BatchScoreFn:
@@ -243,17 +246,27 @@ class RewardModel:
         cache: dict[str, np.ndarray] = {}  # "centred": (B', N, 3) and "pair": (B', P) of the previous call
         calls = {"full": 0, "head": 0}
 
-        def full(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def run(pts: np.ndarray, names: list[str]) -> list[np.ndarray]:
             b = len(pts)
             if b not in tiled:
                 knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.k)  # (1, N, k)
                 tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, t_pts, t_feat, t_cen))
             knn, tp, tf, tc = tiled[b]
             feeds = {"points": pts, "knn": knn, "target_points": tp, "target_features": tf, "target_centroid": tc}
-            names = ["rewards", "pair_features"] if head is not None else ["rewards"]
-            out = self._score.run(names, {name: feeds[name] for name in self._score_inputs})
             calls["full"] += b
-            return out[0], (out[1] if head is not None else np.empty((b, 0), np.float32))
+            return self._score.run(names, {name: feeds[name] for name in self._score_inputs})
+
+        def full(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            out = run(pts, ["rewards", "pair_features"] if head is not None else ["rewards"])
+            return out[0], (out[1] if head is not None else np.empty((len(pts), 0), np.float32))
+
+        def pose(sources: np.ndarray, _target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            # The analytic layer's input (``RewardNet.residual_pose``): y ≈ R x + r in centred coordinates, so the
+            # source centroid must move by r - (source centroid - target centroid).
+            pts = np.ascontiguousarray(sources, dtype=np.float32)
+            pair = run(pts, ["pair_features"])[0].astype(np.float64)  # (B, 12)
+            offset = pts.mean(axis=1, dtype=np.float64) - t_cen.astype(np.float64)
+            return pair[:, :9].reshape(-1, 3, 3), pair[:, 9:12] - offset
 
         def score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
             pts = np.ascontiguousarray(sources, dtype=np.float32)  # (B, N, 3)
@@ -286,7 +299,13 @@ class RewardModel:
             return rewards
 
         score.calls = calls  # type: ignore[attr-defined]
+        score.pose = pose if self.analytic else None  # type: ignore[attr-defined]
         return score
+
+    @property
+    def analytic(self) -> bool:
+        """Whether the rewards follow in closed form from an estimated pose (the ``pose`` of ``batch_score_fn``)."""
+        return self.card.get("net", {}).get("reward_head") == "analytic"
 
     def info(self) -> dict[str, Any]:
         return {"name": self.card.get("name"), "version": self.card.get("version"), "sha256": self.sha256}

@@ -131,7 +131,7 @@ def request_config(
 
     ``icp: false`` is the paper's PRANet-v1 (no ICP, so no exit checks or rescues); exit checks apply to the
     identity start only; ``rescue: false`` turns both rescues off, ``global_match: false`` the classical global
-    candidate.
+    candidate, ``walk: false`` the walk (a network call per step, as the paper), ``polish: false`` the polish.
     """
     if req.steps is not None and len(req.steps) != n_scales:
         raise RequestError(422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts")
@@ -147,6 +147,8 @@ def request_config(
         policy=req.policy,
         early_stop=req.early_stop,
         schedule=tuple(req.steps) if req.steps is not None else None,
+        walk_steps=base.walk_steps if req.walk else 0,
+        polish=base.polish and refine and req.polish,
     )
 
 
@@ -217,5 +219,6 @@ def build_response(
         rescued=result.rescued,
         candidate=result.candidate,
         candidates=result.candidates,
+        network_calls=result.network_calls,
         spacing=result.resolution.spacing if result.resolution else None,
     )

@@ -140,6 +140,16 @@ class RegisterRequest(_Strict):
         "global match (features at the data's resolution and a robust solver, from any initial pose), refined the "
         "same way; the most confident candidate wins (always tried with init='global')",
     )
+    walk: bool = Field(
+        True,
+        description="let the agent take several steps toward one estimated pose between network calls (a few calls "
+        "per registration); false: the paper's protocol, a network call per step",
+    )
+    polish: bool = Field(
+        True,
+        description="with icp: refine the winning result once more with generalized ICP where the surface is smooth "
+        "at its resolution (dense range scans)",
+    )
     return_trajectory: bool = Field(True, description="include the agent's transform after every step")
     init: Literal["identity", "global"] = Field(
         "identity",
@@ -220,6 +230,10 @@ class RegisterResponse(BaseModel):
     )
     candidates: dict[str, float] = Field(
         default_factory=dict, description="every candidate tried this request -> its best confidence"
+    )
+    network_calls: int = Field(
+        0,
+        description="how many source poses the reward network scored this request (each a full network evaluation)",
     )
     spacing: float | None = Field(
         None,

@@ -224,6 +224,7 @@ def test_the_client_result_has_every_field_of_the_response_schema() -> None:
         "candidate": "restarts",
         "candidates": {"agent": 0.2, "global_match": 0.3, "restarts": 0.9},
         "spacing": 0.0005,
+        "network_calls": 7,
     }
     RegisterResponse.model_validate(body)  # a valid response...
     result = RegistrationResult.from_json(body)  # ...read field by field

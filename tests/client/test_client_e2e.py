@@ -110,13 +110,15 @@ def test_bunny_icp_from_identity(pranet_server, bunny, tmp_path: Path) -> None:
 
 def test_bunny_full_pipeline(pranet_server, bunny) -> None:
     """The default request on a real scan pair 34° apart, within the trained agent's reach: the agent's own
-    estimate, refined at the data's resolution, is confident at its first exit check (20 steps) and wins; no other
-    candidate runs. (With random weights the agent ends far off and the global match wins instead.)"""
+    estimate, refined at the data's resolution, is confident at its first exit check (the coarse phase, at most 20
+    steps, in a handful of network calls) and wins; no other candidate runs. (With random weights the agent ends
+    far off and the global match wins instead.)"""
     source, target, T_gt = bunny
     body = cli_register(pranet_server.url, source, target)
     assert body["icp"]["applied"] and body["status"] == "converged"
     assert body["candidate"] == "agent" and set(body["candidates"]) == {"agent"}
-    assert [c["step"] for c in body["exit_checks"]] == [20] and len(body["trajectory"]) == 20
+    assert len(body["exit_checks"]) == 1 and len(body["trajectory"]) == body["exit_checks"][0]["step"] <= 20
+    assert 0 < body["network_calls"] <= 6, body["network_calls"]
     rot, trans = errors(np.asarray(body["transform"]), T_gt)
     assert rot < 0.5 and trans < 1e-3, (rot, trans)  # ICP at the scan's 0.5 mm resolution (measured: 0.06°, 0.1 mm)
 

@@ -8,6 +8,7 @@ from pranet.core.agent import (
     AgentTimeout,
     batch_from_single,
     choose_action,
+    oracle_pose_fn,
     oracle_score_fn,
     run_agent,
     run_agent_batch,
@@ -34,6 +35,46 @@ def test_perfect_oracle_converges_within_60_steps():
         assert len(res.steps) == 60
         rot, trans = isotropic_errors(res.transform, T)
         assert rot < 0.5 and trans < 0.01, (rot, trans)
+
+
+@pytest.mark.parametrize("walk_steps", [1, 5, 60])
+def test_perfect_oracle_walk_converges_with_few_network_calls(walk_steps):
+    """The walk: with the exact residual as the network's estimate, the greedy steps toward it reach the same
+    accuracy as a call per step, and ask the estimator only when the walk arrives or its budget runs out: with an
+    exact estimate, once per scale plus the arrival check (a long walk), or every step (``walk_steps=1``)."""
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        src, tgt, T = random_problem(rng)
+        pose = oracle_pose_fn(T, src)
+        res = run_agent(src, tgt, oracle_score_fn(T, src, TABLE), TABLE, pose_fn=pose, walk_steps=walk_steps)
+        rot, trans = isotropic_errors(res.transform, T)
+        assert rot < 0.5 and trans < 0.01, (rot, trans)
+        assert len(res.stopped_early) == 2  # each scale ended on arrival, not by running out of steps
+        if walk_steps == 1:
+            assert pose.calls[0] == len(res.steps) + 2  # every step, and the arrival of each scale
+        else:
+            assert pose.calls[0] <= 2 * (1 + len(res.steps) // walk_steps) + 2
+
+
+def test_walk_takes_the_paper_loops_steps_until_it_arrives():
+    """With an exact estimate the walk's rewards are the oracle's: the same actions, step for step, until the
+    walk ends a scale on arrival (where the paper's loop oscillates about the goal)."""
+    rng = np.random.default_rng(4)
+    src, tgt, T = random_problem(rng)
+    paper = run_agent(src, tgt, oracle_score_fn(T, src, TABLE), TABLE)
+    walk = run_agent(src, tgt, None, TABLE, pose_fn=oracle_pose_fn(T, src), walk_steps=10)
+    coarse = walk.stopped_early[0]
+    assert [s.action for s in walk.steps[:coarse]] == [s.action for s in paper.steps[:coarse]]
+
+
+def test_the_walk_never_scores_through_the_score_fn():
+    rng = np.random.default_rng(5)
+    src, tgt, T = random_problem(rng)
+
+    def score(source, target):
+        raise AssertionError("the walk must not call score_fn")
+
+    run_agent(src, tgt, score, TABLE, pose_fn=oracle_pose_fn(T, src), walk_steps=3)
 
 
 def test_trajectory_is_consistent():

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from pranet.core.metrics import isotropic_errors
 from pranet.core.pipeline import STAGES, register
 from pranet.core.registration_config import RegistrationConfig
+from pranet.core.registration_types import IcpResult
 from pranet.core.starts import geodesic_distances, start_rotations
 
 
@@ -176,3 +177,40 @@ def test_timing_stages_are_non_negative_and_add_up_to_the_total():
     assert all(t[k] >= 0.0 for k in stages), t
     assert t["icp"] >= 3 * 5.0  # two checks and the final refinement
     assert sum(t[k] for k in stages) == pytest.approx(t["total"], rel=1e-9)
+
+
+def test_the_polish_refines_the_winner_and_is_dropped_when_it_makes_it_worse():
+    """``polish`` runs once, on the winner; a polish that lands on the truth is kept, one that throws the result off
+    (less confident, no longer converged) is dropped."""
+    src, tgt, T = rotated_problem(40.0)
+    truth = unit_truth(src, tgt, T)
+    off = truth.copy()
+    off[:3, 3] += 0.01  # an ICP that stops a little short: still converged, not exact
+    short_icp = lambda s, t, init, res=None: IcpResult(off.copy(), 1.0, 0.0)  # noqa: E731
+    polished = []
+
+    def to_truth(s, t, T_unit, res):
+        polished.append(T_unit)
+        return truth.copy()
+
+    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), polish=True)
+    reg = register(
+        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp, polish_fn=to_truth
+    )
+    assert len(polished) == 1 and np.allclose(polished[0], off)
+    assert isotropic_errors(reg.T_target_source, T)[1] < 1e-6 and reg.timing_ms["polish"] > 0
+    throw_off = lambda s, t, T_unit, res: np.eye(4)  # noqa: E731
+    reg = register(
+        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp, polish_fn=throw_off
+    )
+    np.testing.assert_allclose(reg.normalization.transform_to_unit(reg.T_target_source), off, atol=1e-9)
+    reg = register(
+        src,
+        tgt,
+        RangeLimitedOracle(src, tgt, T),
+        np.random.default_rng(0),
+        config.with_(polish=False),
+        icp=short_icp,
+        polish_fn=to_truth,
+    )
+    assert len(polished) == 1  # not asked for: not run

@@ -224,3 +224,32 @@ def test_batched_rows_that_only_moved_are_rescored_by_the_head(exported):
     for batch in (starts, second, third):
         np.testing.assert_allclose(fast(batch, tgt), plain(batch, tgt), rtol=1e-4, atol=2e-5)
     assert fast.calls == {"full": 3 + 1, "head": 2 + 2} and plain.calls == {"full": 8, "head": 0}
+
+
+def test_the_walks_pose_gives_the_networks_own_rewards(exported):
+    """The walk (``core.agent``) scores actions in closed form from ``score.pose``: those rewards must be the ones
+    the network's analytic layer returns for the same source (and the torch network's residual pose)."""
+    from pranet.core.reward import true_rewards
+
+    net, out = exported
+    model = RewardModel.load(out, threads=1)
+    rng = np.random.default_rng(3)
+    tgt = rng.standard_normal((150, 3)).astype(np.float32) * 0.4
+    sources = np.stack([rng.standard_normal((128, 3)).astype(np.float32) * 0.4 + 0.05 * b for b in range(3)])
+    score = model.batch_score_fn(tgt)
+    if not model.analytic:
+        assert score.pose is None  # MLP heads: no pose, the walk is off and every step calls the network
+        return
+    rewards = score(sources, tgt)
+    R_err, t_err = score.pose(sources, tgt)
+    np.testing.assert_allclose(true_rewards(R_err, t_err, model.table), rewards, atol=2e-4)
+    with torch.no_grad():
+        R_ref, t_ref, _, _ = net.pose_and_rewards(
+            torch.from_numpy(sources),
+            torch.from_numpy(knn_indices(sources[:1], 16).repeat(3, axis=0)),
+            torch.from_numpy(np.repeat(tgt[None], 3, axis=0)),
+            torch.from_numpy(np.repeat(knn_indices(tgt[None], 16), 3, axis=0)),
+        )
+    np.testing.assert_allclose(R_err, R_ref.numpy(), atol=1e-4)
+    np.testing.assert_allclose(t_err, t_ref.numpy(), atol=1e-4)
+    assert score.calls["full"] == 6  # three rows scored, three posed

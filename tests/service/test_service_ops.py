@@ -26,7 +26,7 @@ SLOW_STEPS = [100, 100]  # seconds of agent work on this machine: long enough to
 
 def _slow_body() -> dict:
     source, target, _ = synthetic_pair(n=1000)
-    return {"source": b64(source), "target": b64(target), "steps": SLOW_STEPS, "icp": False}
+    return {"source": b64(source), "target": b64(target), "steps": SLOW_STEPS, "icp": False, "walk": False}
 
 
 def _tiny_body() -> dict:
@@ -81,7 +81,8 @@ def test_time_limit_gives_504(guarded_server: LiveServer) -> None:
     source, target, _ = synthetic_pair(n=300)
     r = httpx.post(
         f"{guarded_server.url}/register",
-        json={"source": b64(source), "target": b64(target)},  # the model's full schedule: far past 0.05 s
+        # the model's full schedule, a network call per step: far past 0.05 s
+        json={"source": b64(source), "target": b64(target), "walk": False, "exit_checks": []},
         headers=AUTH,
         timeout=60,
     )

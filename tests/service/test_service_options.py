@@ -42,6 +42,7 @@ def test_seed_and_policy_reach_the_agent(http: httpx.Client) -> None:
     cannot change it. A service that ignored ``seed`` or ``policy`` fails one of the three."""
     source, target, _ = moved_pair(20.0)
     common = {"source": b64(source), "target": b64(target), "steps": [10, 10], "icp": False, "rescue": False}
+    common["walk"] = False  # the paper's protocol: every step scored by the network, none ends a scale
     a = post(http, **common, policy="stoch2", seed=1)
     again = post(http, **common, policy="stoch2", seed=1)
     other = post(http, **common, policy="stoch2", seed=2)
@@ -56,9 +57,22 @@ def test_early_stop_ends_the_fine_phase_on_an_aligned_pair(http: httpx.Client) -
     without it the agent takes all 40 steps."""
     source = bumpy_shape(N_POINTS)
     common = {"source": b64(source), "target": b64(source), "steps": [0, 40], "icp": False, "rescue": False}
+    common["walk"] = False  # the walk would end the scale on arrival as well
     assert len(post(http, **common, early_stop=False)["trajectory"]) == 40
     stopped = post(http, **common, early_stop=True)
     assert len(stopped["trajectory"]) < 5, actions(stopped)
+
+
+def test_the_walk_needs_a_few_network_calls_where_the_paper_needs_one_per_step(http: httpx.Client) -> None:
+    """``walk`` (the default) scores the steps toward one estimate in closed form: the agent alone (no ICP) reaches
+    the same accuracy with a fraction of the paper protocol's network calls, and ``network_calls`` says so."""
+    source, target, R = moved_pair(30.0)
+    common = {"source": b64(source), "target": b64(target), "icp": False, "rescue": False}
+    walked, paper = post(http, **common), post(http, **common, walk=False)
+    assert paper["network_calls"] >= 30  # the 60 steps, less the translations re-scored by the head alone
+    assert walked["network_calls"] <= paper["network_calls"] // 3, (walked["network_calls"], paper["network_calls"])
+    for out in (walked, paper):
+        assert rotation_error_deg(np.asarray(out["rotation"]), R) < 3.0
 
 
 def test_global_mode_finds_a_150_degree_rotation_the_identity_start_misses(http: httpx.Client) -> None:

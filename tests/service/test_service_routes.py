@@ -102,7 +102,8 @@ def test_register_recovers_a_known_transform(http: httpx.Client) -> None:
 
 def test_register_default_schedule_without_icp(http: httpx.Client) -> None:
     source, target, _ = synthetic_pair(n=300)
-    r = http.post("/register", json={"source": source.tolist(), "target": target.tolist(), "icp": False})
+    body = {"source": source.tolist(), "target": target.tolist(), "icp": False, "walk": False}  # the paper's steps
+    r = http.post("/register", json=body)
     assert r.status_code == 200, r.text
     body = r.json()
     schedule = http.get("/model").json()["schedule"]
@@ -244,14 +245,16 @@ def test_unexpected_errors_are_a_generic_500_without_traceback() -> None:
 
 
 def test_exit_checks_stop_the_agent_once_icp_converges(http: httpx.Client) -> None:
-    """Default request: ICP + confidence after 20 and 40 steps; a 5° pair converges at the first check."""
+    """Default request: ICP + confidence after 20 and 40 scheduled steps; a 5° pair converges at the first check
+    (the walk may end the coarse phase sooner: a 10° step overshoots 5°). The paper's PRANet-v2 takes all 60."""
     source, target, T_gt = synthetic_pair(n=400)
     fast = http.post("/register", json={"source": b64(source), "target": b64(target)}).json()
-    assert fast["exit_checks"][0]["step"] == 20 and fast["exit_checks"][-1]["confidence"] >= 0.55
-    assert len(fast["trajectory"]) == fast["exit_checks"][-1]["step"] < 60
+    assert len(fast["exit_checks"]) == 1 and fast["exit_checks"][0]["confidence"] >= 0.55
+    assert len(fast["trajectory"]) == fast["exit_checks"][0]["step"] <= 20
     assert fast["status"] == "converged" and fast["rescued"] is None
     assert rotation_error_deg(np.array(fast["rotation"]), T_gt[:3, :3]) < 0.05
-    full = http.post("/register", json={"source": b64(source), "target": b64(target), "exit_checks": []}).json()
+    paper = {"source": b64(source), "target": b64(target), "exit_checks": [], "walk": False, "polish": False}
+    full = http.post("/register", json=paper).json()
     assert full["exit_checks"] == [] and len(full["trajectory"]) == 60  # the paper's PRANet-v2
     assert rotation_error_deg(np.array(full["rotation"]), T_gt[:3, :3]) < 0.05
 
