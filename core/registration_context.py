@@ -144,8 +144,22 @@ class RegistrationContext:
 
     def refine(self, T_unit: Array):  # -> IcpResult
         assert self.icp is not None
+        c, gate = self.clouds, self.config.icp_gate
         with self.timer.stage("icp"):
-            return self.icp(self.clouds.src_unit, self.clouds.tgt_unit, T_unit, self.clouds.resolution)
+            if gate is None:
+                return self.icp(c.src_unit, c.tgt_unit, T_unit, c.resolution)
+            return self.icp(c.src_unit, c.tgt_unit, T_unit, c.resolution, proceed=self.promising(gate))
+
+    def promising(self, gate: float):  # -> Callable[[Array], bool]
+        """Whether an estimate, part-refined, is worth the rest of the ICP: its quick confidence reaches ``gate``
+        times the status threshold."""
+
+        def proceed(T_unit: Array) -> bool:
+            with self.timer.stage("confidence"):
+                score = self.estimator.evaluate(T_unit, RANK_QUERIES).score
+            return score >= gate * self.estimator.threshold
+
+        return proceed
 
     def offer(self, name: str, T_unit: Array, agent_index: int | None = None) -> Candidate:
         """Refine ``T_unit`` (when ICP is on), score it, and keep it if it beats ``best``."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Literal, Protocol, get_args
 
 import numpy as np
 
@@ -35,8 +35,22 @@ class IcpResult:
     inlier_rmse: float  # unit frame
 
 
-# icp(source_unit (N, 3), target_unit (M, 3), init T_target_source (4, 4), resolution (unit frame)) -> IcpResult.
-IcpFn = Callable[[Array, Array, Array, Resolution], IcpResult]
+class IcpFn(Protocol):
+    """``icp(source_unit (N, 3), target_unit (M, 3), init T_target_source (4, 4), resolution (unit frame))``.
+
+    ``proceed``: asked with the estimate after the first stage; ``False`` ends the refinement there (a hopeless
+    candidate is not worth the finer stages)."""
+
+    def __call__(
+        self,
+        source: Array,
+        target: Array,
+        init: Array,
+        resolution: Resolution,
+        proceed: Callable[[Array], bool] | None = None,
+    ) -> IcpResult: ...
+
+
 # global_match(source_unit (N, 3), target_unit (M, 3), resolution (unit frame), seed) -> T_target_source (4, 4),
 # from any initial pose; None when it finds no answer.
 GlobalMatchFn = Callable[[Array, Array, Resolution, int], "Array | None"]

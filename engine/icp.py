@@ -9,7 +9,7 @@ normal radius."""
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -97,13 +97,21 @@ def make_icp(
         finish = tuple(s for s in stages if not (smooth and s[0] == POINT_TO_POINT))
         return finish or stages  # a point-to-point-only list runs as it is
 
-    def icp(source: Array, target: Array, init: Array, resolution: Resolution) -> IcpResult:
+    def icp(
+        source: Array,
+        target: Array,
+        init: Array,
+        resolution: Resolution,
+        proceed: Callable[[Array], bool] | None = None,
+    ) -> IcpResult:
         src, tgt = to_o3d(subsample(source, MAX_SOURCE_POINTS, seed=3)), prepared_target(target, resolution)
         unit = resolution.spacing if window_unit == "spacing" else 1.0
         T = np.asarray(init, dtype=np.float64)
-        for method, distance in stages_for(resolution):
+        for i, (method, distance) in enumerate(stages_for(resolution)):
             r = reg.registration_icp(src, tgt, distance * unit, T, estimations[method], criteria)
             T = r.transformation
+            if i == 0 and proceed is not None and not proceed(np.asarray(T)):
+                break
         return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
 
     return icp

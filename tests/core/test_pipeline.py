@@ -214,3 +214,23 @@ def test_the_polish_refines_the_winner_and_is_dropped_when_it_makes_it_worse():
         polish_fn=to_truth,
     )
     assert len(polished) == 1  # not asked for: not run
+
+
+def test_the_icp_gate_asks_for_the_rest_of_the_refinement_only_for_promising_candidates():
+    """With ``icp_gate``, every refinement is offered a ``proceed`` that says yes to an estimate near the truth and
+    no to one far off (its quick confidence against the gate times the threshold); without it, none."""
+    src, tgt, T = rotated_problem(40.0)
+    truth = unit_truth(src, tgt, T)
+    verdicts = []
+
+    def icp(s, t, init, res=None, proceed=None):
+        if proceed is not None:
+            verdicts.append((proceed(truth), proceed(np.eye(4))))
+        return IcpResult(truth.copy(), 1.0, 0.0)
+
+    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40))
+    register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config.with_(icp_gate=0.25), icp=icp)
+    assert verdicts and all(v == (True, False) for v in verdicts)
+    verdicts.clear()
+    register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=icp)
+    assert verdicts == []

@@ -186,3 +186,24 @@ def test_point_to_point_stages_are_skipped_where_the_surface_is_planar_at_its_re
         finally:
             o3d.pipelines.registration.registration_icp = original
         assert len(calls) == expected, (flat, calls)
+
+
+def test_proceed_false_ends_the_refinement_after_the_first_stage():
+    """``proceed`` is asked once, with the first stage's estimate; ``False`` returns that estimate (what a one-stage
+    ICP gives), ``True`` runs every stage."""
+    source, target, T = far_noisy_pair(4, angle_deg=8.0)
+    asked = []
+
+    def stop(T_now):
+        asked.append(T_now.copy())
+        return False
+
+    cut = make_icp(DEFAULT_ICP_STAGES)(source, target, np.eye(4), R, proceed=stop)
+    first_only = make_icp(DEFAULT_ICP_STAGES[:1])(source, target, np.eye(4), R)
+    assert len(asked) == 1
+    np.testing.assert_allclose(cut.transform, first_only.transform)
+    np.testing.assert_allclose(asked[0], first_only.transform)
+    full = make_icp(DEFAULT_ICP_STAGES)(source, target, np.eye(4), R, proceed=lambda T_now: True)
+    plain = make_icp(DEFAULT_ICP_STAGES)(source, target, np.eye(4), R)
+    np.testing.assert_allclose(full.transform, plain.transform)
+    assert not np.allclose(full.transform, cut.transform)
