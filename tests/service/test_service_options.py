@@ -65,14 +65,19 @@ def test_early_stop_ends_the_fine_phase_on_an_aligned_pair(http: httpx.Client) -
 
 def test_the_walk_needs_a_few_network_calls_where_the_paper_needs_one_per_step(http: httpx.Client) -> None:
     """``walk`` (the default) scores the steps toward one estimate in closed form: the agent alone (no ICP) reaches
-    the same accuracy with a fraction of the paper protocol's network calls, and ``network_calls`` says so."""
-    source, target, R = moved_pair(30.0)
+    the same accuracy with a fraction of the paper protocol's network calls, and ``network_calls`` says so.
+
+    This is also what the trained model is for: the agent alone lands within a degree of a 45° turn of a clean
+    shape (measured 0.2°). A network with random weights ends 34-37° off on the same pairs (its position-only
+    matching is a soft ICP: fine at 20°, lost at 45°), while ICP and the global match would still find the answer
+    in a default request, so only the agent alone tells them apart."""
+    source, target, R = moved_pair(45.0)
     common = {"source": b64(source), "target": b64(target), "icp": False, "rescue": False}
     walked, paper = post(http, **common), post(http, **common, walk=False)
-    assert paper["network_calls"] >= 30  # the 60 steps, less the translations re-scored by the head alone
+    assert paper["network_calls"] >= 20  # the 60 steps, less the translations re-scored by the head alone
     assert walked["network_calls"] <= paper["network_calls"] // 3, (walked["network_calls"], paper["network_calls"])
     for out in (walked, paper):
-        assert rotation_error_deg(np.asarray(out["rotation"]), R) < 3.0
+        assert rotation_error_deg(np.asarray(out["rotation"]), R) < 1.0
 
 
 def test_global_mode_finds_a_150_degree_rotation_the_identity_start_misses(http: httpx.Client) -> None:
