@@ -37,6 +37,9 @@ MAX_POINTS_BEFORE_VOXEL = 20000
 # ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed random
 # subset is faster on large scans and no less accurate than a voxel grid (docs/DESIGN.md, "ICP on real scans").
 MAX_SOURCE_POINTS = 2000
+# With a ``proceed`` question, it is asked after this many iterations of the first stage (docs/DESIGN.md, "The ICP
+# gate"); a promising estimate then runs the first stage in full from there.
+GATE_ITERATIONS = 10
 
 
 def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
@@ -70,6 +73,7 @@ def make_icp(
         POINT_TO_PLANE: reg.TransformationEstimationPointToPlane(),
     }
     criteria = reg.ICPConvergenceCriteria(max_iteration=max_iterations)
+    gate_criteria = reg.ICPConvergenceCriteria(max_iteration=min(GATE_ITERATIONS, max_iterations))
     needs_normals = any(m == POINT_TO_PLANE for m, _ in stages)
 
     last: list[tuple[bytes, object]] = []  # the last target prepared: (fingerprint, open3d cloud)
@@ -107,11 +111,20 @@ def make_icp(
         src, tgt = to_o3d(subsample(source, MAX_SOURCE_POINTS, seed=3)), prepared_target(target, resolution)
         unit = resolution.spacing if window_unit == "spacing" else 1.0
         T = np.asarray(init, dtype=np.float64)
-        for i, (method, distance) in enumerate(stages_for(resolution)):
+        plan = stages_for(resolution)
+        if proceed is not None:
+            # The first stage in two parts, asking after the first: a far-off estimate takes every iteration of the
+            # wide stage, and is told hopeless as well after a few (ICP carries nothing from one call to the next
+            # but the transform, so the two parts are the one stage).
+            method, distance = plan[0]
+            r = reg.registration_icp(src, tgt, distance * unit, T, estimations[method], gate_criteria)
+            T = r.transformation
+            if not proceed(np.asarray(T)):
+                return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
+            plan = ((method, distance), *plan[1:])
+        for method, distance in plan:
             r = reg.registration_icp(src, tgt, distance * unit, T, estimations[method], criteria)
             T = r.transformation
-            if i == 0 and proceed is not None and not proceed(np.asarray(T)):
-                break
         return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
 
     return icp
