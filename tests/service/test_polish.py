@@ -47,3 +47,13 @@ def test_polish_declines_rough_data():
     resolution = measure_resolution(PointIndex(source), PointIndex(target))
     rough = type(resolution)(spacing=resolution.spacing, flatness=POLISH_MAX_FLATNESS + 0.1)
     assert make_polish()(source, target, T, rough) is None
+
+
+def test_polish_declines_sparse_clouds():
+    """A ModelNet40-like sample (1024 points over the shape): a voxel grid of 4 spacings leaves too few points for
+    covariances, so an exact result is not put at risk."""
+    source, target, T = dense_pair(2)
+    sparse_source, sparse_target = source[:1024], target[:1024]
+    resolution = measure_resolution(PointIndex(sparse_source), PointIndex(sparse_target))
+    smooth = type(resolution)(spacing=resolution.spacing, flatness=0.0)  # only the sparsity may decline it
+    assert make_polish()(sparse_source, sparse_target, T, smooth) is None
