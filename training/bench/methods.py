@@ -57,6 +57,7 @@ def pranet_method(engine: Any, config: Any) -> MethodFn:
             "status": reg.confidence.status if reg.confidence is not None else None,
             "confidence": reg.confidence.score if reg.confidence is not None else None,
             "candidate": reg.candidate,
+            "network_calls": reg.network_calls,
         }
         if reg.agent is not None:  # steps after a translation: re-scored by head.onnx when the runtime reuses
             moved = set(np.asarray(engine.scorer.table.translation_indices).tolist())
@@ -95,7 +96,8 @@ def baseline_method(fn: Callable[[Array, Array, np.random.Generator], Array]) ->
 def request_body(
     pair: Pair, seed: int, icp: bool = True, steps: Sequence[int] | None = None, adaptive: bool = False
 ) -> bytes:
-    """``adaptive``: the service's default exit checks and rescue; else every step, no rescue (the paper's v2)."""
+    """``adaptive``: the service's default request (exit checks, global match, rescues, the walk, the polish); else
+    the paper's v2: a network call for every step, then ICP, nothing else."""
     from pranet.core.registration_config import SERVICE_DEFAULT
     from pranet.core.wire import encode_cloud
 
@@ -107,6 +109,9 @@ def request_body(
         "return_trajectory": False,
         "exit_checks": list(SERVICE_DEFAULT.exit_checks) if adaptive else [],
         "rescue": adaptive,
+        "global_match": adaptive,
+        "walk": adaptive,
+        "polish": adaptive,
     }
     if steps is not None:
         body["steps"] = list(steps)
@@ -124,7 +129,11 @@ def http_method(client: Any, steps: Sequence[int] | None = None, adaptive: bool 
             raise RuntimeError(f"HTTP {r.status_code}: {r.text[:300]}")
         data = r.json()
         ms = (time.perf_counter() - t0) * 1e3
-        extra = {"server_timing_ms": data["timing_ms"], "exit_checks": data.get("exit_checks", [])}
+        extra = {
+            "server_timing_ms": data["timing_ms"],
+            "exit_checks": data.get("exit_checks", []),
+            "network_calls": data.get("network_calls"),
+        }
         return Outcome(np.asarray(data["transform"], dtype=np.float64), ms, extra)
 
     return run

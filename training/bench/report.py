@@ -158,7 +158,8 @@ def _breakdowns(result: dict[str, Any]) -> list[str]:
             "In-process: `Registration.timing_ms` of `core.pipeline.register`. HTTP: the server's `timing_ms` "
             "(decode = JSON parsing and base64 decoding) and the client's latency; HTTP/JSON overhead = client "
             "latency − server total, per pair (client encoding, transport, FastAPI, response JSON). `confidence`: "
-            "the confidence of each ICP result (with exit checks, one per check)."
+            "the confidence of each ICP result (with exit checks, one per check). `network calls`: source poses "
+            "the reward network scored (full evaluations)."
         )
         head = ["stage"] + [f"{where} ({s})" for s in settings for where in ("in-process", "HTTP")]
         stages = [
@@ -170,11 +171,13 @@ def _breakdowns(result: dict[str, Any]) -> list[str]:
             "confidence",
             "global_match",
             "rescue",
+            "polish",
             "other",
             "server total",
             "HTTP/JSON overhead",
             "total (client)",
             "agent steps run",
+            "network calls",
             "per agent step",
             "max abs ΔT vs in-process",
         ]
@@ -380,10 +383,20 @@ def breakdown(
     for s in settings:
         inproc = [r for r in records if r.setting == s and r.method == in_method and r.error is None]
         http = [r for r in records if r.setting == s and r.method == http_method and r.error is None]
-        stages = ("preprocess", "target_embedding", "agent_steps", "icp", "confidence", "rescue")
+        stages = (
+            "preprocess",
+            "target_embedding",
+            "agent_steps",
+            "icp",
+            "confidence",
+            "global_match",
+            "rescue",
+            "polish",
+        )
         b_in = {st: median([r.extra["timing_ms"].get(st, math.nan) for r in inproc]) for st in stages}
         b_in["total (client)"] = median([r.ms for r in inproc])
         b_in["agent steps run"] = median([r.extra["n_steps"] for r in inproc])
+        b_in["network calls"] = median([r.extra.get("network_calls", math.nan) for r in inproc])
         b_in["per agent step"] = median(
             [r.extra["timing_ms"]["agent_steps"] / r.extra["n_steps"] for r in inproc if r.extra.get("n_steps")]
         )
@@ -393,6 +406,7 @@ def breakdown(
         b_http["server total"] = median([r.extra["server_timing_ms"]["total"] for r in http])
         b_http["HTTP/JSON overhead"] = median([r.ms - r.extra["server_timing_ms"]["total"] for r in http])
         b_http["total (client)"] = median([r.ms for r in http])
+        b_http["network calls"] = median([r.extra.get("network_calls") or math.nan for r in http])
         # Same seed, same clouds (up to their float32 encoding): the service must return the in-process result.
         by_pair = {r.pair: r for r in inproc}
         b_http["max abs ΔT vs in-process"] = max(

@@ -176,7 +176,7 @@ def pranet_method(engine: Any) -> ScanMethod:
             conf.status if conf is not None else None,
             conf.score if conf is not None else None,
             winning_candidate(reg),
-            {"timing_ms": dict(reg.timing_ms)},
+            {"timing_ms": dict(reg.timing_ms), "network_calls": reg.network_calls},
         )
 
     return run
@@ -194,7 +194,7 @@ def http_method(client: Any) -> ScanMethod:
             raise RuntimeError(f"HTTP {r.status_code}: {r.text[:200]}")
         data = r.json()
         candidate = data.get("candidate") or data.get("rescued") or "agent"
-        extra = {"server_timing_ms": data.get("timing_ms", {})}
+        extra = {"server_timing_ms": data.get("timing_ms", {}), "network_calls": data.get("network_calls")}
         return Answer(
             np.asarray(data["transform"], dtype=np.float64), data["status"], data["confidence"], candidate, extra
         )
