@@ -365,7 +365,7 @@ def save_epoch(run: Run, epoch: int, val_loss: float, train_loss: float, n: int,
         f"{run.wall:.1f}",
     ]
     with open(run.out / "log.csv", "a", newline="") as f:
-        csv.writer(f).writerow([*row, f"{run.wall:.1f}"])
+        csv.writer(f).writerow(row)
 
 
 def write_summary(run: Run) -> None:

@@ -54,6 +54,7 @@ def test_smoke_run_and_resume(tmp_path, data_root):
     assert main(args(straight)) == 0
     rows = list(csv.DictReader(open(straight / "log.csv")))
     assert [r["epoch"] for r in rows] == ["0", "1"] and all(float(r["val_loss"]) > 0 for r in rows)
+    assert all(None not in r for r in rows)  # every row has the header's columns, no more
     summary = json.loads((straight / "summary.json").read_text())
     assert summary["epochs"] == 2 and len(summary["data_sha256"]) == 64
     # Interrupted after one epoch, then resumed: the same result as the straight run.
