@@ -21,7 +21,8 @@ need no network. ``pose_fn(sources (B, N, 3), target) -> (R_err (B, 3, 3), t_err
 ``core.reward.true_rewards`` (the same numbers the network's layer would give), and asks the network again
 only when the walk has arrived (no step of the scale brings it nearer) or after ``walk_steps`` steps on one
 estimate. A fresh estimate with no improving step ends the scale: what follows would be the paper's
-oscillation about it. ``walk_steps = 0`` is the paper's protocol, a network call per step.
+oscillation about it. Without ``confirm_arrival`` an arrival ends the scale at once, with no fresh estimate: for
+callers that refine the result by ICP anyway. ``walk_steps = 0`` is the paper's protocol, a network call per step.
 """
 
 from __future__ import annotations
@@ -97,13 +98,14 @@ def run_agent(
     deadline: float | None = None,
     pose_fn: BatchPoseFn | None = None,
     walk_steps: int = 0,
+    confirm_arrival: bool = True,
 ) -> AgentResult:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)``; returns ``T_target_source`` and the trajectory.
 
     ``schedule[i]`` is the number of steps at scale ``i``. With ``early_stop``, a scale ends as soon
     as no action of it has a positive predicted reward. ``deadline`` (``time.monotonic()`` seconds):
-    raise ``AgentTimeout`` once it has passed, checked before every step. ``pose_fn`` and ``walk_steps``: the
-    walk (module docstring); without ``pose_fn`` every step calls ``score_fn``.
+    raise ``AgentTimeout`` once it has passed, checked before every step. ``pose_fn``, ``walk_steps`` and
+    ``confirm_arrival``: the walk (module docstring); without ``pose_fn`` every step calls ``score_fn``.
     """
     T0 = np.eye(4) if initial_transform is None else np.asarray(initial_transform, dtype=np.float64)
     # The batched loop with one start; the single score_fn is called once per step as before.
@@ -120,6 +122,7 @@ def run_agent(
         deadline=deadline,
         pose_fn=pose_fn,
         walk_steps=walk_steps,
+        confirm_arrival=confirm_arrival,
     )[0]
 
 
@@ -136,6 +139,7 @@ def run_agent_batch(
     deadline: float | None = None,
     pose_fn: BatchPoseFn | None = None,
     walk_steps: int = 0,
+    confirm_arrival: bool = True,
 ) -> list[AgentResult]:
     """``run_agent`` from each of ``initial_transforms: (B, 4, 4)`` at once: one ``batch_score_fn`` call per step.
 
@@ -156,7 +160,7 @@ def run_agent_batch(
     c = np.stack([T[:3, :3] @ m + T[:3, 3] for T in T0])  # (B, 3) where each start's source centroid is now
     results = [AgentResult(transform=T.copy()) for T in T0]
     steps = [0] * len(T0)
-    walk = PoseWalk(pose_fn, table, walk_steps) if pose_fn is not None and walk_steps > 0 else None
+    walk = PoseWalk(pose_fn, table, walk_steps, confirm_arrival) if pose_fn is not None and walk_steps > 0 else None
     for scale, n_steps in enumerate(schedule):
         idx = table.indices_of_scale(scale)
         active = list(range(len(T0)))
@@ -192,10 +196,11 @@ def run_agent_batch(
 
 class PoseWalk:
     """The walk's goals: per start, the pose the network's last estimate says the source should reach
-    (``R_goal`` applied to the centred source, its centroid at ``c_goal``), and the steps taken since."""
+    (``R_goal`` applied to the centred source, its centroid at ``c_goal``), and the steps taken since. ``confirm``:
+    an arrival asks the network again (``False``: it ends the scale, for a caller that refines the result anyway)."""
 
-    def __init__(self, pose_fn: BatchPoseFn, table: ActionTable, walk_steps: int) -> None:
-        self.pose_fn, self.table, self.walk_steps = pose_fn, table, walk_steps
+    def __init__(self, pose_fn: BatchPoseFn, table: ActionTable, walk_steps: int, confirm: bool = True) -> None:
+        self.pose_fn, self.table, self.walk_steps, self.confirm = pose_fn, table, walk_steps, confirm
         self.R_goal: dict[int, Array] = {}
         self.c_goal: dict[int, Array] = {}
         self.age: dict[int, int] = {}
@@ -210,10 +215,10 @@ class PoseWalk:
     def rewards(self, rows: Sequence[int], R: Array, c: Array, current: Array, target: Array, idx: Array) -> Array:
         """The rewards of ``rows`` (start indices; ``current`` holds their points in that order) at their poses
         ``R[b], c[b]``, asking the network again for rows without a goal, past ``walk_steps`` on one estimate, or
-        arrived (no action of the scale improves)."""
+        (with ``confirm``) arrived: no action of the scale improves."""
         known = [i for i, b in enumerate(rows) if b in self.R_goal and self.age[b] < self.walk_steps]
         stale = set(range(len(rows))) - set(known)
-        if known:
+        if known and self.confirm:
             arrived = self.toward([rows[i] for i in known], R, c, idx).max(axis=1) <= 0.0
             stale |= {i for i, done in zip(known, arrived, strict=True) if done}
         ask = sorted(stale)

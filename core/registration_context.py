@@ -132,6 +132,7 @@ class RegistrationContext:
             "deadline": self.deadline,
             "pose_fn": pose_fn,
             "walk_steps": c.walk_steps,
+            "confirm_arrival": c.confirm_arrival or not c.refines,
         }
 
     @property

@@ -56,6 +56,19 @@ def test_perfect_oracle_walk_converges_with_few_network_calls(walk_steps):
             assert pose.calls[0] <= 2 * (1 + len(res.steps) // walk_steps) + 2
 
 
+def test_without_confirmation_an_arrival_ends_the_scale_with_no_further_call():
+    """``confirm_arrival=False``: with an exact estimate, one call in all (the estimate serves both scales; the
+    confirming run asks again at each arrival); the walk stops where the confirming run would have asked, so it
+    takes the same steps."""
+    rng = np.random.default_rng(6)
+    src, tgt, T = random_problem(rng)
+    confirming, quick = oracle_pose_fn(T, src), oracle_pose_fn(T, src)
+    a = run_agent(src, tgt, None, TABLE, pose_fn=confirming, walk_steps=60)
+    b = run_agent(src, tgt, None, TABLE, pose_fn=quick, walk_steps=60, confirm_arrival=False)
+    assert quick.calls[0] == 1 and confirming.calls[0] == 3, (quick.calls, confirming.calls)
+    assert [s.action for s in a.steps] == [s.action for s in b.steps]
+
+
 def test_walk_takes_the_paper_loops_steps_until_it_arrives():
     """With an exact estimate the walk's rewards are the oracle's: the same actions, step for step, until the
     walk ends a scale on arrival (where the paper's loop oscillates about the goal)."""
