@@ -48,7 +48,8 @@ def pranet_method(engine: Any, config: Any) -> MethodFn:
 
     def run(pair: Pair, seed: int) -> Outcome:
         t0 = time.perf_counter()
-        reg = engine.register(pair.source, pair.target, config, np.random.default_rng(seed))
+        # The global match seeded with the request's seed, as the service seeds it.
+        reg = engine.register(pair.source, pair.target, config, np.random.default_rng(seed), seed=seed)
         ms = (time.perf_counter() - t0) * 1e3
         extra = {
             "timing_ms": reg.timing_ms,

@@ -169,7 +169,7 @@ def pranet_method(engine: Any) -> ScanMethod:
     from pranet.core.registration_config import SERVICE_DEFAULT
 
     def run(lp: LoadedPair, seed: int) -> Answer:
-        reg = engine.register(lp.source, lp.target, SERVICE_DEFAULT, seed)
+        reg = engine.register(lp.source, lp.target, SERVICE_DEFAULT, seed, seed=seed)  # as the service
         conf = reg.confidence
         return Answer(
             reg.T_target_source,
