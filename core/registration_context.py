@@ -163,10 +163,18 @@ class RegistrationContext:
         return proceed
 
     def offer(self, name: str, T_unit: Array, agent_index: int | None = None) -> Candidate:
-        """Refine ``T_unit`` (when ICP is on), score it, and keep it if it beats ``best``."""
+        """Refine ``T_unit`` (when ICP is on), score it, and keep it if it beats ``best``. A refinement that scores
+        below the estimate it started from is dropped: point-to-plane ICP on a sparse partial shape can slide
+        along a flat part, or solve a degenerate system, and end far off (docs/DESIGN.md, "When ICP makes it
+        worse")."""
         refined = self.refine(T_unit) if self.icp is not None else None
         T = refined.transform if refined is not None else T_unit
-        candidate = Candidate(self.evaluate(T), name, T, refined, agent_index)
+        confidence = self.evaluate(T)
+        if refined is not None:
+            unrefined = self.evaluate(T_unit)
+            if unrefined.score > confidence.score:
+                T, refined, confidence = T_unit, None, unrefined
+        candidate = Candidate(confidence, name, T, refined, agent_index)
         self.tried[name] = max(self.tried.get(name, 0.0), candidate.confidence.score)
         if candidate.beats(self.best):
             self.best = candidate

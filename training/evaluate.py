@@ -169,11 +169,11 @@ def pranet_runner(
             v1_extra = {**extra, "confidence": agent_conf.score, "status": agent_conf.status}
             out["pranet-v1"] = MethodOutput(reg.agent_T_target_source, v1_ms, traj, v1_extra)
         if want_v2:
-            assert reg.icp is not None
             v2_extra = {
                 **extra,
                 "icp_ms": t["icp"],
-                "icp_fitness": reg.icp.fitness,
+                # None: ICP's result scored below the agent's estimate and was dropped (core.registration_context)
+                "icp_fitness": reg.icp.fitness if reg.icp is not None else None,
                 "confidence": reg.confidence.score,
                 "status": reg.confidence.status,
             }
