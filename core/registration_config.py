@@ -84,7 +84,9 @@ class RegistrationConfig:
     confirms). ``polish``: with ICP, refine the winning candidate once more (small_gicp's GICP where the surface
     is smooth at its resolution; ``engine.polish``). ``icp_gate``: a
     candidate whose quick confidence after the first ICP stage is below ``icp_gate`` times the status threshold
-    is not refined further (``None``: every candidate gets every stage).
+    is not refined further (``None``: every candidate gets every stage). ``icp_guard``: keep a candidate's
+    estimate instead of its ICP result when that scores lower (off for the paper's v2: its ICP result, whatever
+    it is).
     """
 
     icp_stages: tuple[IcpStage, ...] = ()
@@ -103,6 +105,7 @@ class RegistrationConfig:
     confirm_arrival: bool = True
     polish: bool = False
     icp_gate: float | None = None
+    icp_guard: bool = False
 
     def __post_init__(self) -> None:
         check_icp_stages(self.icp_stages)
@@ -146,4 +149,5 @@ SERVICE_DEFAULT = PAPER_V2.with_(
     confirm_arrival=False,
     polish=True,
     icp_gate=ICP_GATE,
+    icp_guard=True,
 )

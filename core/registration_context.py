@@ -163,14 +163,14 @@ class RegistrationContext:
         return proceed
 
     def offer(self, name: str, T_unit: Array, agent_index: int | None = None) -> Candidate:
-        """Refine ``T_unit`` (when ICP is on), score it, and keep it if it beats ``best``. A refinement that scores
-        below the estimate it started from is dropped: point-to-plane ICP on a sparse partial shape can slide
-        along a flat part, or solve a degenerate system, and end far off (docs/DESIGN.md, "When ICP makes it
-        worse")."""
+        """Refine ``T_unit`` (when ICP is on), score it, and keep it if it beats ``best``. With ``icp_guard``, a
+        refinement that scores below the estimate it started from is dropped: point-to-plane ICP on a sparse
+        partial shape can slide along a flat part, or solve a degenerate system, and end far off (docs/DESIGN.md,
+        "When ICP makes it worse")."""
         refined = self.refine(T_unit) if self.icp is not None else None
         T = refined.transform if refined is not None else T_unit
         confidence = self.evaluate(T)
-        if refined is not None:
+        if refined is not None and self.config.icp_guard:
             unrefined = self.evaluate(T_unit)
             if unrefined.score > confidence.score:
                 T, refined, confidence = T_unit, None, unrefined

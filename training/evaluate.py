@@ -172,7 +172,6 @@ def pranet_runner(
             v2_extra = {
                 **extra,
                 "icp_ms": t["icp"],
-                # None: ICP's result scored below the agent's estimate and was dropped (core.registration_context)
                 "icp_fitness": reg.icp.fitness if reg.icp is not None else None,
                 "confidence": reg.confidence.score,
                 "status": reg.confidence.status,

@@ -234,3 +234,20 @@ def test_the_icp_gate_asks_for_the_rest_of_the_refinement_only_for_promising_can
     verdicts.clear()
     register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=icp)
     assert verdicts == []
+
+
+def test_the_icp_guard_keeps_the_estimate_when_icp_makes_it_worse():
+    """An ICP that throws a right estimate far off: with ``icp_guard`` the estimate (more confident) is kept and the
+    result says no ICP was applied; without it (the paper's v2) the ICP result is the answer."""
+    src, tgt, T = rotated_problem(20.0)
+    far = np.eye(4)
+    far[:3, 3] = [3.0, 0.0, 0.0]
+    throw_off = lambda s, t, init, res=None, proceed=None: IcpResult(far.copy(), 0.0, 0.0)  # noqa: E731
+    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),))
+    guarded = register(
+        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config.with_(icp_guard=True), icp=throw_off
+    )
+    rot, trans = isotropic_errors(guarded.T_target_source, T)
+    assert rot < 0.5 and trans < 0.01 and guarded.icp is None
+    plain = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=throw_off)
+    assert isotropic_errors(plain.T_target_source, T)[1] > 1.0 and plain.icp is not None

@@ -22,7 +22,9 @@ def test_batched_rows_equal_single_calls():
     single = model.score_fn(target)
     out = batched(moved, target)
     assert out.shape == (5, len(model.table))
+    # float32: a batch and a single row take different kernel paths, and the reward layer's angle differences of
+    # the fine scale amplify the rounding (up to 3e-5 measured); a row scored for another start is off by ~0.1.
     for b in range(5):
-        np.testing.assert_allclose(out[b], single(moved[b], target), rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(out[b], single(moved[b], target), rtol=1e-4, atol=1e-4)
     # a smaller batch later (early stop shrinks it) reuses the same graph
-    np.testing.assert_allclose(batched(moved[2:4], target), out[2:4], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(batched(moved[2:4], target), out[2:4], rtol=1e-4, atol=1e-4)
