@@ -217,19 +217,20 @@ class PoseWalk:
         ``R[b], c[b]``, asking the network again for rows without a goal, past ``walk_steps`` on one estimate, or
         (with ``confirm``) arrived: no action of the scale improves."""
         known = [i for i, b in enumerate(rows) if b in self.R_goal and self.age[b] < self.walk_steps]
-        stale = set(range(len(rows))) - set(known)
-        if known and self.confirm:
-            arrived = self.toward([rows[i] for i in known], R, c, idx).max(axis=1) <= 0.0
-            stale |= {i for i, done in zip(known, arrived, strict=True) if done}
-        ask = sorted(stale)
+        out = np.empty((len(rows), len(idx)))
+        if known:  # scored once: these rewards are the answer unless the row is asked again below
+            out[known] = self.toward([rows[i] for i in known], R, c, idx)
+        arrived = [i for i in known if self.confirm and out[i].max() <= 0.0]
+        ask = sorted(set(range(len(rows))) - set(known) | set(arrived))
         if ask:
             R_err, t_err = self.pose_fn(current[ask], target)
             for i, R_e, t_e in zip(ask, np.asarray(R_err, np.float64), np.asarray(t_err, np.float64), strict=True):
                 b = rows[i]
                 self.R_goal[b], self.c_goal[b], self.age[b] = R_e @ R[b], c[b] + t_e, 0
+            out[ask] = self.toward([rows[i] for i in ask], R, c, idx)
         for b in rows:
             self.age[b] += 1
-        return self.toward(rows, R, c, idx)
+        return out
 
 
 def batch_from_single(score_fn: ScoreFn) -> BatchScoreFn:

@@ -66,6 +66,12 @@ def cloud_radius(points: npt.ArrayLike) -> float:
     return float(np.linalg.norm(p - p.mean(axis=0), axis=1).max())
 
 
+def relative_spacing(spacing: float, points: npt.ArrayLike) -> float:
+    """``spacing`` as a fraction of the radius of ``points: (N, 3)``: above ``SPARSE_FROM`` the clouds count as
+    sparse (a few points over the object)."""
+    return spacing / cloud_radius(points)
+
+
 def status_threshold(base: float, relative_spacing: float) -> float:
     """The threshold of ``status`` for clouds whose spacing is ``relative_spacing`` of their radius: ``base`` for
     dense clouds, rising to ``SPARSE_THRESHOLD`` (never below ``base``) for sparse ones."""
@@ -93,7 +99,7 @@ class ConfidenceEstimator:
         self.spacing = resolution.spacing
         self.tau = INLIER_SPACINGS * resolution.spacing
         self.near = OVERLAP_SPACINGS * resolution.spacing
-        self.threshold = status_threshold(threshold, resolution.spacing / cloud_radius(self.target_index.points))
+        self.threshold = status_threshold(threshold, relative_spacing(resolution.spacing, self.target_index.points))
 
     def evaluate(self, T_target_source: npt.ArrayLike, n_queries: int | None = None) -> Confidence:
         """The confidence of ``T_target_source: (4, 4)`` (unit frame). ``n_queries``: fewer query points per

@@ -34,8 +34,6 @@ RESCUE_WINDOW = 0.5
 # The service's agent walks up to this many steps toward one estimated pose before asking the network again
 # (``core.agent``): validation pairs, docs/DESIGN.md, "The walk".
 WALK_STEPS = 10
-# With ICP after the agent, an arrival ends the scale without a confirming network call: the same validation success,
-# a third fewer calls (docs/DESIGN.md, "The walk").
 # A candidate whose quick confidence after the first (8-spacing) ICP stage is under a quarter of the status threshold
 # is not refined further: on the real scans wrong agent estimates scored 0.00-0.16 there and right ones (the
 # agent's and the global match's) 0.28-0.91, and the finer stages of a wrong one cost 40-60 ms; at half the
@@ -82,11 +80,10 @@ class RegistrationConfig:
     reward layer only, others call it every step). ``confirm_arrival``: when the walk arrives, ask the network
     again before ending the scale (``False`` is honoured only with ICP after the agent: the agent alone always
     confirms). ``polish``: with ICP, refine the winning candidate once more (small_gicp's GICP where the surface
-    is smooth at its resolution; ``engine.polish``). ``icp_gate``: a
-    candidate whose quick confidence after the first ICP stage is below ``icp_gate`` times the status threshold
-    is not refined further (``None``: every candidate gets every stage). ``icp_guard``: keep a candidate's
-    estimate instead of its ICP result when that scores lower (off for the paper's v2: its ICP result, whatever
-    it is).
+    is smooth at its resolution; ``engine.polish``). ``icp_gate``: a candidate whose quick confidence after the
+    first ICP iterations is below ``icp_gate`` times the status threshold is not refined further (``None``: every
+    candidate gets every stage). ``icp_guard``: keep a candidate's estimate instead of its ICP result when that
+    scores lower (off for the paper's v2: its ICP result, whatever it is).
     """
 
     icp_stages: tuple[IcpStage, ...] = ()
@@ -146,6 +143,8 @@ SERVICE_DEFAULT = PAPER_V2.with_(
     rescue_window=RESCUE_WINDOW,
     rescue_restarts=True,
     walk_steps=WALK_STEPS,
+    # ICP follows the agent, so an arrival ends the scale without a confirming network call: the same validation
+    # success, a third fewer calls (docs/DESIGN.md, "The walk").
     confirm_arrival=False,
     polish=True,
     icp_gate=ICP_GATE,

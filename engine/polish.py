@@ -13,14 +13,13 @@ polish moved an exact clean result 1.5° off) and on noisy RGB-D fragments a vox
 
 from __future__ import annotations
 
-import hashlib
-
 import numpy as np
 
-from pranet.core.confidence import SPARSE_FROM, cloud_radius
+from pranet.core.confidence import SPARSE_FROM, relative_spacing
 from pranet.core.registration_types import PolishFn
 from pranet.core.resolution import Resolution
 from pranet.core.se3 import Array
+from pranet.engine.content_cache import LastByContent
 
 POLISH_MAX_FLATNESS = 0.25  # the same bound as the point-to-point finish of ``engine.icp``: the surface is smooth
 WINDOWS = (0.5,)  # voxels: Open3D's stages already ended within 2 spacings (half a voxel)
@@ -34,22 +33,13 @@ def make_polish(threads: int = 1) -> PolishFn:
     repeated requests on the same target are common in batch work)."""
     import small_gicp
 
-    last: list[tuple[bytes, tuple]] = []
+    targets: LastByContent[tuple] = LastByContent()  # (small_gicp cloud, its KD-tree)
 
     def prepared(points: Array, voxel: float) -> tuple:
-        p = np.ascontiguousarray(points, dtype=np.float64)
-        digest = hashlib.blake2b(p.tobytes(), digest_size=16, person=str(p.shape).encode()[:16])
-        digest.update(np.float64(voxel).tobytes())
-        key = digest.digest()
-        if last and last[0][0] == key:
-            return last[0][1]
-        cloud = small_gicp.preprocess_points(p, voxel, NEIGHBOURS, threads)
-        last[:] = [(key, cloud)]
-        return cloud
+        return targets.get(points, voxel, lambda p: small_gicp.preprocess_points(p, voxel, NEIGHBOURS, threads))
 
     def polish(source: Array, target: Array, T: Array, resolution: Resolution) -> Array | None:
-        sparse = resolution.spacing > SPARSE_FROM * cloud_radius(target)
-        if sparse or resolution.flatness > POLISH_MAX_FLATNESS:
+        if relative_spacing(resolution.spacing, target) > SPARSE_FROM or resolution.flatness > POLISH_MAX_FLATNESS:
             return None
         voxel = resolution.voxel
         tgt, tree = prepared(target, voxel)
