@@ -19,17 +19,17 @@ from pathlib import Path
 import numpy as np
 
 
-def load_engine(path: Path, tmp: Path):
+def load_engine(path: Path, tmp: Path, threads: int = 2):
     from pranet.engine.engine import Engine
 
     if path.is_dir():
-        return Engine.load(path)
+        return Engine.load(path, threads=threads)
     from pranet.model.export import card_from_checkpoint, export_model, load_checkpoint
 
     net, ck = load_checkpoint(path)
     out = tmp / path.parent.name
     export_model(net, out, card_from_checkpoint(ck, "probe", "0.0.0"))
-    return Engine.load(out)
+    return Engine.load(out, threads=threads)
 
 
 def probe(engine, shapes: np.ndarray, setting: str, pairs: int) -> dict[str, float]:
@@ -72,6 +72,7 @@ def main() -> None:
     p.add_argument("--settings", default="clean,noisy,partial")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--json", type=Path)
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads (1 beside other work)")
     args = p.parse_args()
 
     from pranet.training.data import data_dir, load_modelnet40, split_train_val
@@ -81,7 +82,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for path in args.models:
-            engine = load_engine(path, Path(tmp))
+            engine = load_engine(path, Path(tmp), args.threads)
             for setting in args.settings.split(","):
                 row = {"model": str(path), "setting": setting, **probe(engine, shapes, setting, args.pairs)}
                 rows.append(row)

@@ -216,6 +216,29 @@ def test_the_polish_refines_the_winner_and_is_dropped_when_it_makes_it_worse():
     assert len(polished) == 1  # not asked for: not run
 
 
+def test_the_polish_never_decides_the_status():
+    """A ``suspect`` winner is not polished: on a wrong pose a finer refinement squeezes the overlap tighter and could
+    lift it over the threshold, so the status is the ranking refinement's (a polish that lands on the truth does
+    not make it ``converged`` either)."""
+    src, tgt, T = rotated_problem(40.0)
+    truth = unit_truth(src, tgt, T)
+    off = truth.copy()
+    off[:3, 3] += 0.01
+    short_icp = lambda s, t, init, res=None: IcpResult(off.copy(), 1.0, 0.0)  # noqa: E731
+    polished = []
+
+    def to_truth(s, t, T_unit, res):
+        polished.append(T_unit)
+        return truth.copy()
+
+    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), polish=True, threshold=1.01)  # never converged
+    reg = register(
+        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp, polish_fn=to_truth
+    )
+    assert polished == [] and reg.confidence.status == "suspect"
+    np.testing.assert_allclose(reg.normalization.transform_to_unit(reg.T_target_source), off, atol=1e-9)
+
+
 def test_the_icp_gate_asks_for_the_rest_of_the_refinement_only_for_promising_candidates():
     """With ``icp_gate``, every refinement is offered a ``proceed`` that says yes to an estimate near the truth and
     no to one far off (its quick confidence against the gate times the threshold); without it, none."""
