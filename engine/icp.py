@@ -24,6 +24,7 @@ from pranet.core.registration_types import IcpResult
 from pranet.core.resolution import NORMAL_MAX_NN, Resolution
 from pranet.core.se3 import Array
 from pranet.engine.content_cache import LastByContent
+from pranet.engine.polish import polishable
 
 # Point-to-point stages finish the refinement only where the surface is not planar at the data's resolution
 # (``Resolution.flatness`` above this): on ModelNet40's sparse samples a point-to-plane finish cut the service
@@ -37,6 +38,11 @@ MAX_POINTS_BEFORE_VOXEL = 20000
 # ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed random
 # subset is faster on large scans and no less accurate than a voxel grid (docs/DESIGN.md, "ICP on real scans").
 MAX_SOURCE_POINTS = 2000
+# Where the GICP polish finishes the winner (``engine.polish.polishable``: dense, smooth scans) these stages only
+# rank the candidates, and half the points rank them as well: the same answers on every object pair of the
+# benchmark and its reversed pairs, a quarter off the ICP of a wrong estimate; on RGB-D fragments, which are not
+# polished, the finish keeps its 2000 (docs/DESIGN.md, "Fewer ICP points where the polish finishes").
+RANKING_SOURCE_POINTS = 1000
 # With a ``proceed`` question, it is asked after this many iterations of the first stage (docs/DESIGN.md, "The ICP
 # gate"); a promising estimate then runs the first stage in full from there.
 GATE_ITERATIONS = 10
@@ -78,17 +84,17 @@ def make_icp(
 
     # One registration refines against the same target several times (exit checks, candidates); its normals cost
     # 35-45 ms on a 15k-point scan.
-    targets: LastByContent[object] = LastByContent()  # open3d clouds
+    targets: LastByContent[tuple] = LastByContent()  # (open3d cloud, how many source points to use)
 
-    def prepared_target(target: Array, resolution: Resolution):  # -> open3d.geometry.PointCloud
-        def make(t: Array):
+    def prepared_target(target: Array, resolution: Resolution) -> tuple:  # (open3d.geometry.PointCloud, int)
+        def make(t: Array) -> tuple:
             tgt = to_o3d(t)
             if len(t) > MAX_POINTS_BEFORE_VOXEL:
                 tgt = tgt.voxel_down_sample(TARGET_VOXEL_SPACINGS * resolution.spacing)
             if needs_normals:
                 search = o3d.geometry.KDTreeSearchParamHybrid(radius=resolution.normal_radius, max_nn=NORMAL_MAX_NN)
                 tgt.estimate_normals(search)
-            return tgt
+            return tgt, RANKING_SOURCE_POINTS if polishable(resolution, t) else MAX_SOURCE_POINTS
 
         return targets.get(target, resolution.spacing, make)
 
@@ -104,7 +110,8 @@ def make_icp(
         resolution: Resolution,
         proceed: Callable[[Array], bool] | None = None,
     ) -> IcpResult:
-        src, tgt = to_o3d(subsample(source, MAX_SOURCE_POINTS, seed=3)), prepared_target(target, resolution)
+        tgt, source_points = prepared_target(target, resolution)
+        src = to_o3d(subsample(source, source_points, seed=3))
         unit = resolution.spacing if window_unit == "spacing" else 1.0
         T = np.asarray(init, dtype=np.float64)
         plan = stages_for(resolution)

@@ -27,6 +27,12 @@ NEIGHBOURS = 10  # small_gicp's default for its covariances
 MAX_ITERATIONS = 20
 
 
+def polishable(resolution: Resolution, target: Array) -> bool:
+    """Whether the polish finishes registrations onto ``target`` at ``resolution``: dense clouds (relative spacing
+    under ``SPARSE_FROM``) whose surface is smooth at its resolution (flatness at most ``POLISH_MAX_FLATNESS``)."""
+    return relative_spacing(resolution.spacing, target) <= SPARSE_FROM and resolution.flatness <= POLISH_MAX_FLATNESS
+
+
 def make_polish(threads: int = 1) -> PolishFn:
     """A ``PolishFn``: ``(source, target, T, resolution) -> T`` or ``None`` where the data is not smooth enough.
     The target's voxel grid, covariances and KD-tree are cached per content (one registration polishes once, but
@@ -39,7 +45,7 @@ def make_polish(threads: int = 1) -> PolishFn:
         return targets.get(points, voxel, lambda p: small_gicp.preprocess_points(p, voxel, NEIGHBOURS, threads))
 
     def polish(source: Array, target: Array, T: Array, resolution: Resolution) -> Array | None:
-        if relative_spacing(resolution.spacing, target) > SPARSE_FROM or resolution.flatness > POLISH_MAX_FLATNESS:
+        if not polishable(resolution, target):
             return None
         voxel = resolution.voxel
         tgt, tree = prepared(target, voxel)

@@ -59,7 +59,7 @@ def main() -> None:
     p.add_argument("out", type=Path, help="directory for pairs.csv")
     p.add_argument("--data-dir", default=None)
     args = p.parse_args()
-    scans = data_dir(args.data_dir) / "scans"
+    scans = (data_dir(args.data_dir) / "scans").resolve()
     listed = read_pairs(scans / "pairs.csv")
     rows = [
         row(f"{q.id}_rev", q.target, q.source, inverse(q.T_gt), "" if q.overlap is None else f"{q.overlap:g}", q.kind)

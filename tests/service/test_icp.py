@@ -207,3 +207,41 @@ def test_proceed_false_ends_the_refinement_after_the_first_stage():
     plain = make_icp(DEFAULT_ICP_STAGES)(source, target, np.eye(4), R)
     np.testing.assert_allclose(full.transform, plain.transform)
     assert not np.allclose(full.transform, cut.transform)
+
+
+def test_where_the_polish_finishes_half_the_source_points_rank_the_candidates():
+    """On a dense smooth scan (``engine.polish.polishable``) the stages use ``RANKING_SOURCE_POINTS`` of the source
+    and still land on the truth; on the same clouds measured rough they keep ``MAX_SOURCE_POINTS``. A stand-in of
+    Open3D's ICP records how many source points it is given."""
+    import open3d as o3d
+
+    from pranet.core.nearest import PointIndex
+    from pranet.core.resolution import measure_resolution
+    from pranet.engine.icp import MAX_SOURCE_POINTS, RANKING_SOURCE_POINTS
+
+    rng = np.random.default_rng(7)
+    u = rng.standard_normal((20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    source = u * (1.0 + 0.15 * np.exp(-8 * np.sum((u - [0.6, 0.5, 0.6]) ** 2, axis=1)))[:, None] * [0.9, 0.6, 0.4]
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.deg2rad(3.0) * np.array([1.0, 2.0, -1.0]) / np.sqrt(6.0)).as_matrix()
+    T[:3, 3] = [0.01, -0.005, 0.0]
+    target = source @ T[:3, :3].T + T[:3, 3]
+    smooth = measure_resolution(PointIndex(source), PointIndex(target))
+    rough = Resolution(smooth.spacing, flatness=0.5)
+    sizes = []
+    original = o3d.pipelines.registration.registration_icp
+
+    def spy(src, tgt, *args):
+        sizes.append(len(src.points))
+        return original(src, tgt, *args)
+
+    o3d.pipelines.registration.registration_icp = spy
+    try:
+        for resolution, expected in ((smooth, RANKING_SOURCE_POINTS), (rough, MAX_SOURCE_POINTS)):
+            sizes.clear()
+            result = make_icp()(source, target, np.eye(4), resolution)
+            assert set(sizes) == {expected}, (resolution, sizes)
+            assert success(result.transform, T)
+    finally:
+        o3d.pipelines.registration.registration_icp = original
