@@ -46,11 +46,17 @@ class NetConfig:
     matching: str = "softmax"  # "softmax" | "sinkhorn"
     sinkhorn_iters: int = 5
     match_passes: int = 1  # sinkhorn: rounds of matching, each from the previous round's estimate
+    # sinkhorn: rounds at inference (0: ``match_passes``); those beyond the trained ones reuse the last trained
+    # round's (β, γ, α), as RPMNet trains with 2 iterations and tests with 5 (docs/DESIGN.md, "More matching rounds
+    # at inference"). Set at export (``pranet-export --match-passes``), never in training.
+    inference_passes: int = 0
     reward_head: str = "mlp"  # "mlp" | "analytic"
 
     def __post_init__(self) -> None:
         if self.matching not in ("softmax", "sinkhorn"):
             raise ValueError(f"unknown matching {self.matching!r}")
+        if self.inference_passes < 0:
+            raise ValueError(f"inference_passes must be >= 0, got {self.inference_passes}")
         if self.reward_head not in ("mlp", "analytic"):
             raise ValueError(f"unknown reward_head {self.reward_head!r}")
         if self.reward_head == "analytic" and not (

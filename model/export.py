@@ -37,9 +37,14 @@ OPSET = 17
 FP32_GRAPHS = (*graph_files("fp32"), head_file("fp32"))
 
 
-def load_checkpoint(path: Path) -> tuple[RewardNet, dict[str, Any]]:
+def load_checkpoint(path: Path, match_passes: int | None = None) -> tuple[RewardNet, dict[str, Any]]:
+    """The network of a ``pranet-train`` checkpoint, in eval mode, and the checkpoint. ``match_passes``: rounds of
+    matching at inference (``NetConfig.inference_passes``; recorded in the returned checkpoint's config, so the
+    card says what the exported graph runs)."""
     ck = torch.load(path, map_location="cpu", weights_only=False)
     cfg = ck["config"]
+    if match_passes is not None:
+        cfg["net"] = {**cfg["net"], "inference_passes": int(match_passes)}
     table = build_action_table(cfg["scales"])
     net = RewardNet(NetConfig.from_dict(cfg["net"]), table)
     net.load_state_dict(ck["model"])
@@ -64,6 +69,9 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         stale.unlink()
     cfg = net.cfg
     N, k = cfg.n_points, cfg.k
+    # The graphs are traced in eval mode (inference rounds of matching, no dropout). The wrappers are made in eval
+    # mode too: torch.onnx.export puts a module back in the mode it found it in, and a new module is in training
+    # mode, which left ``net`` training after the export.
     pts = torch.randn(1, N, 3)
     knn = torch.randint(0, N, (1, N, k), dtype=torch.int64)
     with torch.no_grad():
@@ -71,7 +79,7 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         pair = net.pair_features(feats, cen, feats, cen, pts, pts)
     axes = {"points": {0: "batch", 1: "n"}, "knn": {0: "batch", 1: "n"}}
     torch.onnx.export(
-        EmbedGraph(net),
+        EmbedGraph(net).eval(),
         (pts, knn),
         str(out / "embed.onnx"),
         input_names=["points", "knn"],
@@ -81,7 +89,7 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         dynamo=False,
     )
     torch.onnx.export(
-        ScoreGraph(net),
+        ScoreGraph(net).eval(),
         (pts, knn, pts, feats, cen),
         str(out / "score.onnx"),
         input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
@@ -98,7 +106,7 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         dynamo=False,
     )
     torch.onnx.export(
-        HeadGraph(net),
+        HeadGraph(net).eval(),
         (pair, cen - cen),
         str(out / "head.onnx"),
         input_names=["pair_features", "offset"],
@@ -157,11 +165,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also write int8 graphs (dynamic quantization); without a checkpoint: add them to --out",
     )
+    p.add_argument(
+        "--match-passes",
+        type=int,
+        default=None,
+        help="rounds of Sinkhorn matching in the exported graph (default: as trained); rounds beyond the trained "
+        "ones reuse the last round's parameters",
+    )
     args = p.parse_args(argv)
     if args.checkpoint is None and not args.int8:
         p.error("a checkpoint is required (or --int8 to quantize the existing model directory --out)")
     if args.checkpoint is not None:
-        net, ck = load_checkpoint(args.checkpoint)
+        net, ck = load_checkpoint(args.checkpoint, args.match_passes)
         card = card_from_checkpoint(ck, args.name, args.version)
         # Provenance: which checkpoint (path as given, relative to the repository root when run from it).
         card["checkpoint"] = {"path": args.checkpoint.as_posix(), "sha256": sha256_file(args.checkpoint)}

@@ -236,14 +236,15 @@ class SinkhornCorrespondence(nn.Module):
     estimate so far, Sinkhorn with slack, weighted Procrustes, composed onto the estimate. ``(β, γ, α) >= 0``
     of every round are predicted from the two pooled feature vectors (RPMNet's parameter network): the
     first round can lean on the features, the later ones on positions, which is what makes the
-    estimate precise near alignment. Returns ``(B, 12)``: ``R`` flattened row-major, then ``r``.
+    estimate precise near alignment. In eval mode ``inference_passes`` (when set) rounds run, those beyond
+    ``passes`` with the last round's parameters. Returns ``(B, 12)``: ``R`` flattened row-major, then ``r``.
     """
 
     # Scales of the predicted (β, γ, α): cosines are in [-1, 1] and squared distances between
     # neighbours of a unit-sized cloud of a few hundred points are ~1e-2.
     PARAM_SCALES = (20.0, 200.0, 2.0)
 
-    def __init__(self, dim: int, pooled_dim: int, iterations: int, passes: int = 1) -> None:
+    def __init__(self, dim: int, pooled_dim: int, iterations: int, passes: int = 1, inference_passes: int = 0) -> None:
         super().__init__()
         self.q = nn.Linear(dim, dim)
         self.k = nn.Linear(dim, dim)
@@ -251,6 +252,12 @@ class SinkhornCorrespondence(nn.Module):
         self.params = nn.Sequential(nn.Linear(2 * pooled_dim, 64), nn.ReLU(), nn.Linear(64, 3 * passes))
         self.register_buffer("param_scales", torch.tensor(self.PARAM_SCALES), persistent=False)
         self.iterations = iterations
+        self.inference_passes = inference_passes
+
+    def rounds(self) -> list[int]:
+        """The parameter index of each matching round: the trained rounds, then (eval mode) the last one again."""
+        n = self.passes if self.training or self.inference_passes <= 0 else self.inference_passes
+        return [min(i, self.passes - 1) for i in range(n)]
 
     def forward(self, fx: Tensor, fy: Tensor, x: Tensor, y: Tensor, pooled: Tensor) -> Tensor:
         B = x.shape[0]
@@ -261,7 +268,7 @@ class SinkhornCorrespondence(nn.Module):
         y_sq = (y * y).sum(-1).unsqueeze(1)  # (B, 1, M)
         R = torch.eye(3, dtype=x.dtype, device=x.device).expand(B, 3, 3)
         r = torch.zeros_like(x[:, 0])
-        for i in range(self.passes):
+        for i in self.rounds():
             beta, gamma, alpha = (params[:, i, j].view(B, 1, 1) for j in range(3))
             moved = x @ R.transpose(1, 2) + r.unsqueeze(1)  # (B, N, 3)
             d2 = (moved * moved).sum(-1, keepdim=True) - 2.0 * moved @ y.transpose(1, 2) + y_sq  # (B, N, M)
@@ -337,7 +344,7 @@ class RewardNet(nn.Module):
         self.correspondence: nn.Module | None = None
         if cfg.correspondence:
             self.correspondence = (
-                SinkhornCorrespondence(D, pooled, cfg.sinkhorn_iters, cfg.match_passes)
+                SinkhornCorrespondence(D, pooled, cfg.sinkhorn_iters, cfg.match_passes, cfg.inference_passes)
                 if cfg.matching == "sinkhorn"
                 else SoftCorrespondence(D)
             )

@@ -133,7 +133,7 @@ def test_shipped_model_is_its_committed_checkpoint():
     ck_path = Path(__file__).resolve().parents[2] / card["checkpoint"]["path"]
     assert ck_path.is_file(), f"{ck_path}: the checkpoint of the shipped model is not committed"
     assert sha256_file(ck_path) == card["checkpoint"]["sha256"]
-    net, ck = load_checkpoint(ck_path)
+    net, ck = load_checkpoint(ck_path, card["net"].get("inference_passes") or None)  # the rounds the graph runs
     assert ck["epoch"] + 1 == card["training"]["epochs_completed"] and ck["val_loss"] == card["training"]["val_loss"]
     model = RewardModel.load(default_model_dir(), threads=1)
     rng = np.random.default_rng(3)
@@ -253,3 +253,30 @@ def test_the_walks_pose_gives_the_networks_own_rewards(exported):
     np.testing.assert_allclose(R_err, R_ref.numpy(), atol=1e-4)
     np.testing.assert_allclose(t_err, t_ref.numpy(), atol=1e-4)
     assert score.calls["full"] == 6  # three rows scored, three posed
+
+
+def test_more_matching_rounds_at_export_are_what_the_graph_runs(tmp_path):
+    """``pranet-export --match-passes 5``: the committed checkpoint's graph with five rounds of matching computes what
+    the torch network with ``inference_passes=5`` computes, and not what the trained three rounds compute. (Trained
+    weights: with random ones, five rounds of an arbitrary matching amplify float32 differences.)"""
+    from pathlib import Path
+
+    from pranet.model.export import card_from_checkpoint, load_checkpoint
+
+    card = read_card(default_model_dir())
+    ck_path = Path(__file__).resolve().parents[2] / card["checkpoint"]["path"]
+    net5, ck = load_checkpoint(ck_path, match_passes=5)
+    net3, _ = load_checkpoint(ck_path)
+    assert ck["config"]["net"]["inference_passes"] == 5
+    export_model(net5, tmp_path, card_from_checkpoint(ck, "test", "0"))
+    assert read_card(tmp_path)["net"]["inference_passes"] == 5
+    model = RewardModel.load(tmp_path, threads=1)
+    rng = np.random.default_rng(5)
+    src = rng.standard_normal((model.n_points, 3)).astype(np.float32) * 0.4
+    tgt = src @ np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]], np.float32).T + 0.05
+    args = [torch.from_numpy(a) for a in (src[None], knn_indices(src[None], 16), tgt[None], knn_indices(tgt[None], 16))]
+    with torch.no_grad():
+        ref5, ref3 = net5(*args)[0].numpy(), net3(*args)[0].numpy()
+    ort = model.score_fn(tgt)(src, tgt)
+    np.testing.assert_allclose(ort, ref5, rtol=1e-4, atol=1e-5)
+    assert np.abs(ref5 - ref3).max() > 1e-3

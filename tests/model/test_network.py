@@ -228,3 +228,44 @@ def test_analytic_head_rescores_a_translated_source_from_its_pair_features():
 def test_analytic_head_needs_sinkhorn_matching():
     with pytest.raises(ValueError, match="analytic"):
         NetConfig(correspondence=True, reward_head="analytic")
+
+
+def test_rounds_beyond_the_trained_ones_run_at_inference_and_bring_an_icp_like_match_closer():
+    """``inference_passes``: in eval mode the matching runs that many rounds, the extra ones with the last trained
+    round's (β, γ, α); in training mode the trained rounds only. With a position-only match (an ICP-like soft
+    match) from 12° off, one round leaves most of the error and the extra rounds take it further, as ICP's
+    iterations do; ``inference_passes == match_passes`` is the trained function exactly."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    from pranet.core.metrics import isotropic_errors
+
+    cfg = NetConfig(n_points=96, correspondence=True, matching="sinkhorn", reward_head="analytic", sinkhorn_iters=10)
+    table = build_action_table()
+    torch.manual_seed(0)
+    trained = RewardNet(cfg, table).eval()
+    with torch.no_grad():
+        last = trained.correspondence.params[-1]
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([-30.0, 4.0, 0.0]))  # β ≈ 0, γ ≈ 800, α = 0: positions only
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(96, 3)) * [1.0, 0.6, 0.3]
+    R = Rotation.from_rotvec(np.deg2rad(12.0) * np.array([1.0, -2.0, 0.5]) / np.sqrt(5.25)).as_matrix()
+    tgt = (src - src.mean(0)) @ R.T + src.mean(0)
+    s, t = torch.from_numpy(src[None]).float(), torch.from_numpy(tgt[None]).float()
+    sk, tk = (torch.from_numpy(knn_indices(a.numpy(), 16)) for a in (s, t))
+    truth = np.eye(4)
+    truth[:3, :3] = R
+    errors = {}
+    for rounds in (0, 1, 4):
+        net = RewardNet(replace(cfg, inference_passes=rounds), table).eval()
+        net.load_state_dict(trained.state_dict())
+        with torch.no_grad():
+            R_hat, t_hat, _, _ = net.pose_and_rewards(s, sk, t, tk)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_hat[0].numpy(), t_hat[0].numpy()
+        errors[rounds] = isotropic_errors(T, truth)[0]
+        assert net.correspondence.train().rounds() == [0]  # training runs the trained round only
+    assert errors[1] == pytest.approx(errors[0], abs=1e-9)
+    assert errors[4] < 0.5 * errors[1] and errors[1] > 1.0, errors
