@@ -167,6 +167,17 @@ def test_summary_counts_suspect_precision_and_recall_and_the_ratio_to_the_fastes
     assert s["fgr-icp"]["converged"] is None and math.isnan(s["fgr-icp"]["suspect_precision"])
 
 
+def test_the_peers_voxel_is_four_spacings_of_a_regular_grid_duplicates_ignored():
+    """``scan_voxel``: 4x the median nearest-neighbour distance (the pipeline's ``median_spacing``), so on a grid of
+    pitch 3 mm it is 12 mm, and repeating every point does not shrink it to 0."""
+    from pranet.training.bench.scan_peers import scan_voxel
+
+    grid = np.stack(np.meshgrid(*[np.arange(30) * 0.003] * 2, indexing="ij"), -1).reshape(-1, 2)
+    plane = np.column_stack([grid, np.zeros(len(grid))])
+    assert scan_voxel(plane) == pytest.approx(0.012)
+    assert scan_voxel(np.concatenate([plane, plane])) == pytest.approx(0.012)
+
+
 def test_the_doc_section_is_replaced_in_place_or_appended(tmp_path):
     doc = tmp_path / "PERF.md"
     doc.write_text(

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from pranet.core.resolution import median_spacing
 from pranet.core.se3 import Array
 
 SPACING_SAMPLES = 2000  # source points whose nearest neighbour sets the spacing (a fixed-seed subsample)
@@ -47,18 +48,12 @@ PeerFn = Callable[[Array, Array, float, int, int], Array]  # (source, target, vo
 
 def point_spacing(points: Array, seed: int = 0, samples: int = SPACING_SAMPLES) -> float:
     """Median distance from a point to its nearest other point, over ``samples`` points drawn with ``seed``
-    (against the whole cloud, so the subsample does not thin the spacing out)."""
-    from scipy.spatial import cKDTree
-
-    points = np.asarray(points, dtype=np.float64)
-    rng = np.random.default_rng(seed)
-    idx = rng.choice(len(points), size=min(samples, len(points)), replace=False)
-    dist, _ = cKDTree(points).query(points[idx], k=2)
-    nearest = dist[:, 1]
-    nearest = nearest[nearest > 0]  # duplicated points say nothing about the sampling
-    if not len(nearest):
+    (against the whole cloud): the pipeline's own measure, ``core.resolution.median_spacing``, so that the peers'
+    voxel is the one the service would derive from the same cloud."""
+    spacing = median_spacing(np.asarray(points, dtype=np.float64), probes=samples, seed=seed)
+    if spacing <= 0:
         raise ValueError("cannot measure the point spacing: every sampled point is duplicated")
-    return float(np.median(nearest))
+    return spacing
 
 
 def scan_voxel(source: Array, seed: int = 0) -> float:
