@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
@@ -42,10 +43,12 @@ def main() -> None:
     for _ in range(calls):
         score.run(None, {n: feeds[n] for n in names})
     by_op: collections.Counter = collections.Counter()
-    with open(score.end_profiling()) as f:
+    profile = Path(score.end_profiling())
+    with open(profile) as f:
         for e in json.load(f):
             if e.get("cat") == "Node" and e["name"].endswith("_kernel_time"):
                 by_op[e["args"].get("op_name", "")] += e["dur"]
+    profile.unlink()  # onnxruntime writes it into the working directory
     total = sum(by_op.values())
     for op, us in by_op.most_common(12):
         print(f"{us / calls / 1e3:7.2f} ms  {100 * us / total:5.1f} %  {op}")
