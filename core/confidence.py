@@ -60,18 +60,6 @@ class Confidence:
         return asdict(self)
 
 
-def cloud_radius(points: npt.ArrayLike) -> float:
-    """The largest distance of a point of ``points: (N, 3)`` from their centroid."""
-    p = np.asarray(points, dtype=np.float64)
-    return float(np.linalg.norm(p - p.mean(axis=0), axis=1).max())
-
-
-def relative_spacing(spacing: float, points: npt.ArrayLike) -> float:
-    """``spacing`` as a fraction of the radius of ``points: (N, 3)``: above ``SPARSE_FROM`` the clouds count as
-    sparse (a few points over the object)."""
-    return spacing / cloud_radius(points)
-
-
 def status_threshold(base: float, relative_spacing: float) -> float:
     """The threshold of ``status`` for clouds whose spacing is ``relative_spacing`` of their radius: ``base`` for
     dense clouds, rising to ``SPARSE_THRESHOLD`` (never below ``base``) for sparse ones."""
@@ -91,7 +79,8 @@ class ConfidenceEstimator:
         threshold: float = DEFAULT_THRESHOLD,
         max_queries: int = MAX_QUERIES,
     ):
-        """``source: (N, 3)``, ``target: (M, 3)`` in one frame, or their indexes (built once per registration)."""
+        """``source: (N, 3)``, ``target: (M, 3)`` in one frame, or their indexes (built once per registration);
+        ``resolution``: theirs (``measure_resolution``), whose relative spacing sets the status threshold."""
         self.source_index = source if isinstance(source, PointIndex) else PointIndex(source)
         self.target_index = target if isinstance(target, PointIndex) else PointIndex(target)
         self.source_queries = subsample(self.source_index.points, max_queries, seed=2)  # (<= Q, 3)
@@ -99,7 +88,7 @@ class ConfidenceEstimator:
         self.spacing = resolution.spacing
         self.tau = INLIER_SPACINGS * resolution.spacing
         self.near = OVERLAP_SPACINGS * resolution.spacing
-        self.threshold = status_threshold(threshold, relative_spacing(resolution.spacing, self.target_index.points))
+        self.threshold = status_threshold(threshold, resolution.relative_spacing)
 
     def evaluate(self, T_target_source: npt.ArrayLike, n_queries: int | None = None) -> Confidence:
         """The confidence of ``T_target_source: (4, 4)`` (unit frame). ``n_queries``: fewer query points per

@@ -10,6 +10,7 @@ then 1 voxel): docs/DESIGN.md, "Resolution first".
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,12 +65,22 @@ def flatness(points: npt.ArrayLike | PointIndex, spacing: float, probes: int = F
     return float(np.median(np.sqrt(np.maximum(smallest, 0.0)))) / spacing
 
 
+def cloud_radius(points: npt.ArrayLike) -> float:
+    """The largest distance of a point of ``points: (N, 3)`` from their centroid."""
+    p = np.asarray(points, dtype=np.float64)
+    return float(np.linalg.norm(p - p.mean(axis=0), axis=1).max())
+
+
 @dataclass(frozen=True)
 class Resolution:
     """The scales of one registration, all in the units of the clouds it was measured on."""
 
     spacing: float  # median nearest-neighbour distance, the coarser of the two clouds
     flatness: float = 0.0  # the target's out-of-plane spread at that spacing, in spacings (unit-free)
+    # The spacing as a fraction of the target's radius (unit-free): how densely the object is sampled, which decides
+    # the status threshold (``core.confidence``) and where the polish runs (``engine.polish``). inf: not measured,
+    # counted as sparse.
+    relative_spacing: float = math.inf
 
     @property
     def voxel(self) -> float:
@@ -85,13 +96,14 @@ class Resolution:
 
     def scaled(self, factor: float) -> Resolution:
         """The same resolution in units scaled by ``factor`` (e.g. world -> unit frame)."""
-        return Resolution(self.spacing * factor, self.flatness)
+        return Resolution(self.spacing * factor, self.flatness, self.relative_spacing)
 
 
 def measure_resolution(source: Array | PointIndex, target: Array | PointIndex) -> Resolution:
     """The resolution of a pair: the coarser spacing of ``source: (N, 3)`` and ``target: (M, 3)`` (or their
-    indexes, built once per registration), so that every scale resolves both clouds, and the target's flatness."""
+    indexes, built once per registration), so that every scale resolves both clouds, the target's flatness, and
+    the spacing relative to the target's radius."""
     src = source if isinstance(source, PointIndex) else PointIndex(source)
     tgt = target if isinstance(target, PointIndex) else PointIndex(target)
     spacing = max(median_spacing(src, seed=0), median_spacing(tgt, seed=1))
-    return Resolution(spacing, flatness(tgt, spacing))
+    return Resolution(spacing, flatness(tgt, spacing), spacing / cloud_radius(tgt.points))

@@ -84,17 +84,17 @@ def make_icp(
 
     # One registration refines against the same target several times (exit checks, candidates); its normals cost
     # 35-45 ms on a 15k-point scan.
-    targets: LastByContent[tuple] = LastByContent()  # (open3d cloud, how many source points to use)
+    targets: LastByContent[object] = LastByContent()  # open3d clouds
 
-    def prepared_target(target: Array, resolution: Resolution) -> tuple:  # (open3d.geometry.PointCloud, int)
-        def make(t: Array) -> tuple:
+    def prepared_target(target: Array, resolution: Resolution):  # -> open3d.geometry.PointCloud
+        def make(t: Array):
             tgt = to_o3d(t)
             if len(t) > MAX_POINTS_BEFORE_VOXEL:
                 tgt = tgt.voxel_down_sample(TARGET_VOXEL_SPACINGS * resolution.spacing)
             if needs_normals:
                 search = o3d.geometry.KDTreeSearchParamHybrid(radius=resolution.normal_radius, max_nn=NORMAL_MAX_NN)
                 tgt.estimate_normals(search)
-            return tgt, RANKING_SOURCE_POINTS if polishable(resolution, t) else MAX_SOURCE_POINTS
+            return tgt
 
         return targets.get(target, resolution.spacing, make)
 
@@ -110,8 +110,8 @@ def make_icp(
         resolution: Resolution,
         proceed: Callable[[Array], bool] | None = None,
     ) -> IcpResult:
-        tgt, source_points = prepared_target(target, resolution)
-        src = to_o3d(subsample(source, source_points, seed=3))
+        source_points = RANKING_SOURCE_POINTS if polishable(resolution) else MAX_SOURCE_POINTS
+        src, tgt = to_o3d(subsample(source, source_points, seed=3)), prepared_target(target, resolution)
         unit = resolution.spacing if window_unit == "spacing" else 1.0
         T = np.asarray(init, dtype=np.float64)
         plan = stages_for(resolution)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pranet.core.confidence import SPARSE_FROM, relative_spacing
+from pranet.core.confidence import SPARSE_FROM
 from pranet.core.registration_types import PolishFn
 from pranet.core.resolution import Resolution
 from pranet.core.se3 import Array
@@ -27,10 +27,10 @@ NEIGHBOURS = 10  # small_gicp's default for its covariances
 MAX_ITERATIONS = 20
 
 
-def polishable(resolution: Resolution, target: Array) -> bool:
-    """Whether the polish finishes registrations onto ``target`` at ``resolution``: dense clouds (relative spacing
-    under ``SPARSE_FROM``) whose surface is smooth at its resolution (flatness at most ``POLISH_MAX_FLATNESS``)."""
-    return relative_spacing(resolution.spacing, target) <= SPARSE_FROM and resolution.flatness <= POLISH_MAX_FLATNESS
+def polishable(resolution: Resolution) -> bool:
+    """Whether the polish finishes registrations at ``resolution``: dense clouds (relative spacing at most
+    ``SPARSE_FROM``) whose surface is smooth at its resolution (flatness at most ``POLISH_MAX_FLATNESS``)."""
+    return resolution.relative_spacing <= SPARSE_FROM and resolution.flatness <= POLISH_MAX_FLATNESS
 
 
 def make_polish(threads: int = 1) -> PolishFn:
@@ -45,7 +45,7 @@ def make_polish(threads: int = 1) -> PolishFn:
         return targets.get(points, voxel, lambda p: small_gicp.preprocess_points(p, voxel, NEIGHBOURS, threads))
 
     def polish(source: Array, target: Array, T: Array, resolution: Resolution) -> Array | None:
-        if not polishable(resolution, target):
+        if not polishable(resolution):
             return None
         voxel = resolution.voxel
         tgt, tree = prepared(target, voxel)

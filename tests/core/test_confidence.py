@@ -171,9 +171,9 @@ def test_sparse_clouds_need_a_higher_score_to_be_converged():
         SPARSE_AT,
         SPARSE_FROM,
         SPARSE_THRESHOLD,
-        cloud_radius,
         status_threshold,
     )
+    from pranet.core.resolution import cloud_radius
 
     assert status_threshold(DEFAULT_THRESHOLD, 0.004) == DEFAULT_THRESHOLD
     assert status_threshold(DEFAULT_THRESHOLD, 0.05) == SPARSE_THRESHOLD

@@ -213,6 +213,8 @@ def test_where_the_polish_finishes_half_the_source_points_rank_the_candidates():
     """On a dense smooth scan (``engine.polish.polishable``) the stages use ``RANKING_SOURCE_POINTS`` of the source
     and still land on the truth; on the same clouds measured rough they keep ``MAX_SOURCE_POINTS``. A stand-in of
     Open3D's ICP records how many source points it is given."""
+    from dataclasses import replace
+
     import open3d as o3d
 
     from pranet.core.nearest import PointIndex
@@ -228,7 +230,7 @@ def test_where_the_polish_finishes_half_the_source_points_rank_the_candidates():
     T[:3, 3] = [0.01, -0.005, 0.0]
     target = source @ T[:3, :3].T + T[:3, 3]
     smooth = measure_resolution(PointIndex(source), PointIndex(target))
-    rough = Resolution(smooth.spacing, flatness=0.5)
+    rough = replace(smooth, flatness=0.5)
     sizes = []
     original = o3d.pipelines.registration.registration_icp
 

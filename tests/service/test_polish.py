@@ -1,5 +1,7 @@
 """engine.polish: small_gicp's GICP as the winner's last refinement, only where the surface is smooth."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -45,7 +47,7 @@ def test_polish_lands_on_the_truth_from_a_degree_off():
 def test_polish_declines_rough_data():
     source, target, T = dense_pair(1)
     resolution = measure_resolution(PointIndex(source), PointIndex(target))
-    rough = type(resolution)(spacing=resolution.spacing, flatness=POLISH_MAX_FLATNESS + 0.1)
+    rough = replace(resolution, flatness=POLISH_MAX_FLATNESS + 0.1)
     assert make_polish()(source, target, T, rough) is None
 
 
@@ -55,5 +57,5 @@ def test_polish_declines_sparse_clouds():
     source, target, T = dense_pair(2)
     sparse_source, sparse_target = source[:1024], target[:1024]
     resolution = measure_resolution(PointIndex(sparse_source), PointIndex(sparse_target))
-    smooth = type(resolution)(spacing=resolution.spacing, flatness=0.0)  # only the sparsity may decline it
+    smooth = replace(resolution, flatness=0.0)  # only the sparsity may decline it
     assert make_polish()(sparse_source, sparse_target, T, smooth) is None
