@@ -57,6 +57,12 @@ class PreparedClouds:
     src_n: Array  # (N, 3) resampled for the agent
     tgt_n: Array  # (N, 3)
 
+    @property
+    def viewpoint(self) -> Array:
+        """The input frame's origin in the unit frame, (3,): where a scan's sensor was (scans come in their sensor's
+        frame), for the global match's normals."""
+        return self.norm.to_unit(np.zeros((1, 3)))[0]
+
 
 def prepare(
     source: npt.ArrayLike,

@@ -51,9 +51,10 @@ class IcpFn(Protocol):
     ) -> IcpResult: ...
 
 
-# global_match(source_unit (N, 3), target_unit (M, 3), resolution (unit frame), seed) -> T_target_source (4, 4),
-# from any initial pose; None when it finds no answer.
-GlobalMatchFn = Callable[[Array, Array, Resolution, int], "Array | None"]
+# global_match(source_unit (N, 3), target_unit (M, 3), resolution (unit frame), seed, viewpoint (3,): the input
+# frame's origin in the unit frame, where the sensor was) -> T_target_source (4, 4), from any initial pose; None
+# when it finds no answer.
+GlobalMatchFn = Callable[[Array, Array, Resolution, int, Array], "Array | None"]
 # polish(source_unit, target_unit, T_target_source (4, 4), resolution) -> a finer T_target_source, or None where
 # the data does not suit it: the last refinement of the winning candidate only.
 PolishFn = Callable[[Array, Array, Array, Resolution], "Array | None"]
