@@ -177,14 +177,16 @@ def _top(scores: Sequence[float], k: int) -> list[int]:
 
 
 def global_match(ctx: RegistrationContext) -> None:
-    """The classical global candidate: features matched at the data's resolution and a robust solver, from any
-    initial rotation, then the same ICP. Seeded: the same request gives the same answer. Its features see the
-    surface from the input frame's origin (``PreparedClouds.viewpoint``)."""
+    """The classical global candidates: features matched at the data's resolution and a robust solver, from any
+    initial rotation, each refined by the same ICP; cheapest first, and no more once one is confident. Seeded: the
+    same request gives the same answer. Its features see the surface from the input frame's origin
+    (``PreparedClouds.viewpoint``)."""
     assert ctx.global_match is not None
     c = ctx.clouds
-    T = ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed, c.viewpoint)
-    if T is not None:
+    for T in ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed, c.viewpoint):
         ctx.offer(GLOBAL_MATCH, T)
+        if ctx.confident:
+            return
 
 
 def rescue(ctx: RegistrationContext) -> None:

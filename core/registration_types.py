@@ -7,7 +7,7 @@ model's unit frame (``core.preprocess.Normalization``); a ``Registration`` is in
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Literal, Protocol, get_args
 
@@ -52,9 +52,9 @@ class IcpFn(Protocol):
 
 
 # global_match(source_unit (N, 3), target_unit (M, 3), resolution (unit frame), seed, viewpoint (3,): the input
-# frame's origin in the unit frame, where the sensor was) -> T_target_source (4, 4), from any initial pose; None
-# when it finds no answer.
-GlobalMatchFn = Callable[[Array, Array, Resolution, int, Array], "Array | None"]
+# frame's origin in the unit frame, where the sensor was) -> candidates T_target_source (4, 4) from any initial
+# pose, cheapest first, each computed when asked for (none when it finds no answer).
+GlobalMatchFn = Callable[[Array, Array, Resolution, int, Array], Iterable[Array]]
 # polish(source_unit, target_unit, T_target_source (4, 4), resolution) -> a finer T_target_source, or None where
 # the data does not suit it: the last refinement of the winning candidate only.
 PolishFn = Callable[[Array, Array, Array, Resolution], "Array | None"]

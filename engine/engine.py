@@ -17,7 +17,7 @@ from pranet.core.pipeline import register
 from pranet.core.registration_config import POINT_TO_POINT, SERVICE_DEFAULT, IcpStage, RegistrationConfig
 from pranet.core.registration_context import Scorer
 from pranet.core.registration_types import GlobalMatchFn, IcpFn, PolishFn, Registration
-from pranet.engine.global_match import global_match as default_global_match
+from pranet.engine.global_match import global_matches
 from pranet.engine.icp import make_icp
 from pranet.engine.polish import make_polish
 
@@ -33,7 +33,7 @@ class Engine:
         self,
         scorer: Scorer,
         icp_factory: IcpFactory = make_icp,
-        global_match: GlobalMatchFn = default_global_match,
+        global_match: GlobalMatchFn = global_matches,
         polish: PolishFn | None = None,
     ) -> None:
         self.scorer = scorer

@@ -274,3 +274,27 @@ def test_the_icp_guard_keeps_the_estimate_when_icp_makes_it_worse():
     assert rot < 0.5 and trans < 0.01 and guarded.icp is None
     plain = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=throw_off)
     assert isotropic_errors(plain.T_target_source, T)[1] > 1.0 and plain.icp is not None
+
+
+def test_global_candidates_are_asked_for_cheapest_first_until_one_is_confident():
+    """The global match's candidates are a lazy sequence: a wrong one is refined and scored, the next is asked for,
+    and once one is ``converged`` no more are computed (the finer KISS-Matcher grid and RANSAC cost 2-10x the coarse
+    grid)."""
+    src, tgt, T = rotated_problem(150.0)  # beyond the stand-in's reach: the global match decides
+    truth = unit_truth(src, tgt, T)
+    wrong = truth @ np.diag([-1.0, -1.0, 1.0, 1.0])  # turned 180° about the source's z axis
+    asked = []
+
+    def candidates(s, t, res, seed, viewpoint):
+        for name, T_unit in (("coarse", wrong), ("fine", truth), ("ransac", wrong)):
+            asked.append(name)
+            yield T_unit.copy()
+
+    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), global_match=True)
+    icp = snapping_icp(truth, 5.0)  # refines only what is already within 5° of the truth
+    reg = register(
+        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=icp, global_match_fn=candidates
+    )
+    assert asked == ["coarse", "fine"]
+    assert reg.candidate == "global_match" and reg.confidence.status == "converged"
+    assert isotropic_errors(reg.T_target_source, T)[0] < 1e-4

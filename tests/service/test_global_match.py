@@ -11,12 +11,18 @@ pytest.importorskip("kiss_matcher")
 from pranet.core.metrics import isotropic_errors  # noqa: E402
 from pranet.core.resolution import measure_resolution  # noqa: E402
 from pranet.core.se3 import make_transform  # noqa: E402
+from pranet.engine import global_match as gm  # noqa: E402
 from pranet.engine.global_match import (  # noqa: E402
-    global_match,
+    global_matches,
     kiss_matcher_global_match,
     occupied_voxels,
     ransac_global_match,
 )
+
+
+def first_global_match(*args):
+    """The first (cheapest) candidate of ``global_matches``, or None."""
+    return next(iter(global_matches(*args)), None)
 
 
 def turned_pair(angle_deg: float, n: int = 4000, seed: int = 0):
@@ -32,7 +38,7 @@ def turned_pair(angle_deg: float, n: int = 4000, seed: int = 0):
     return source, target @ T[:3, :3].T + T[:3, 3], T
 
 
-@pytest.mark.parametrize("matcher", [kiss_matcher_global_match, ransac_global_match, global_match])
+@pytest.mark.parametrize("matcher", [kiss_matcher_global_match, ransac_global_match, first_global_match])
 def test_a_rotation_far_beyond_the_agent_reach_is_found(matcher):
     source, target, T = turned_pair(150.0)
     found = matcher(source, target, measure_resolution(source, target), 0)
@@ -56,7 +62,32 @@ def test_clouds_of_a_few_voxels_get_no_answer_and_no_crash():
         resolution = measure_resolution(source, target)
         assert occupied_voxels(source, resolution.voxel) < 30
         assert kiss_matcher_global_match(source, target, resolution) is None
-        assert global_match(source, target, resolution) is None
+        assert list(global_matches(source, target, resolution)) == []
+    source, target, _ = turned_pair(150.0)  # many cells of one voxel, a handful of 50
+    assert kiss_matcher_global_match(source, target, measure_resolution(source, target), grid=50.0) is None
+
+
+def test_candidates_come_coarse_grid_first_and_only_when_asked_for(monkeypatch):
+    """KISS-Matcher on 2 voxels, then on 1; RANSAC only when the finest grid found nothing; nothing runs before it
+    is asked for. The coarse grid's answer is coarse, for ICP to refine."""
+    source, target, T = turned_pair(150.0)
+    resolution = measure_resolution(source, target)
+    calls = []
+    kiss, ransac = gm.kiss_matcher_global_match, gm.ransac_global_match
+    monkeypatch.setattr(gm, "kiss_matcher_global_match", lambda *a: calls.append(("kiss", a[-1])) or kiss(*a))
+    monkeypatch.setattr(gm, "ransac_global_match", lambda *a: calls.append(("ransac",)) or ransac(*a))
+    candidates = global_matches(source, target, resolution, 0, None)
+    assert calls == []
+    coarse = next(candidates)
+    assert calls == [("kiss", 2.0)]
+    rot, trans = isotropic_errors(coarse, T)
+    assert rot < 10.0 and trans < 0.1, (rot, trans)
+    assert next(candidates) is not None and calls == [("kiss", 2.0), ("kiss", 1.0)]
+    assert list(candidates) == [] and ("ransac",) not in calls  # KISS-Matcher found one on the finest grid
+    calls.clear()
+    monkeypatch.setattr(gm, "kiss_matcher_global_match", lambda *a: calls.append(("kiss", a[-1])) and None)
+    found = list(global_matches(source, target, resolution, 0, None))
+    assert calls == [("kiss", 2.0), ("kiss", 1.0), ("ransac",)] and len(found) == 1
 
 
 def test_occupied_voxels_counts_cells():

@@ -130,7 +130,7 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
         engine = Engine(
             oracle,
             icp_factory=lambda stages, window_unit="spacing": stays if len(stages) == 1 else icp,
-            global_match=lambda *args: None,
+            global_match=lambda *args: (),
         )
         out = run_registration(body, engine, info, CloudLimits(10**6, 10**6), time.monotonic() + 60)
         return out.model_dump()
