@@ -6,8 +6,9 @@
 ``register`` runs one registration as a ``RegistrationConfig`` (``core.registration_config``) says: the paper's
 PRANet-v1 (the agent alone), PRANet-v2 (+ ICP), or the service's default. Cheap candidates come first and a
 confident result ends the request: the agent's exit checks refine its estimate with ICP at the data's own
-resolution after 20 and 40 steps and stop once ``converged``; only an unconfident result pays for the global
-match, and only a still unconfident one for the rescues. Every candidate is refined by the same ICP and scored by
+resolution after 20 and 40 steps and stop once ``converged`` (before the global match, once sure: at least
+``exit_confidence``); only a result short of that pays for the global match, and only a still unconfident one for
+the rescues. Every candidate is refined by the same ICP and scored by
 the same ``Confidence`` (``core.confidence``); the most confident wins and the response names it.
 
 ``init="global"`` forces the wide search: the agent's coarse phase from ``n_starts`` well-spread rotations at once
@@ -136,7 +137,7 @@ def agent_from_input_pose(ctx: RegistrationContext, score_fn: ScoreFn, until: in
         if scheduled in checks and scheduled < total:  # an exit check
             checked = ctx.offer(AGENT, agent.transform, agent_index=0)
             ctx.checks.append((len(agent.steps), checked.confidence.score))
-            if ctx.confident:
+            if ctx.sure if until is not None else ctx.confident:  # before the global match: the surer bar
                 return
     if ctx.agent_scheduled == total:
         ctx.offer(AGENT, agent.transform, agent_index=0)
@@ -289,10 +290,11 @@ def register(
                 global_match(ctx)
     else:
         # 3. The agent from the input pose, to its first exit check (its coarse phase) when the global match may
-        # follow; 4. the global match when it is not sure; 5. the rest of the agent's schedule.
+        # follow; 4. the global match unless the agent is sure (``exit_confidence``); 5. the rest of the agent's
+        # schedule, unless something is confident by then.
         first_check = min(config.exit_checks, default=None) if ctx.global_match is not None else None
         agent_from_input_pose(ctx, score_fn, until=first_check)
-        if ctx.global_match is not None and not ctx.confident:
+        if ctx.global_match is not None and not ctx.sure:
             with timer.stage("global_match"):
                 global_match(ctx)
         if not ctx.confident:

@@ -39,6 +39,12 @@ WALK_STEPS = 10
 # agent's and the global match's) 0.28-0.91, and the finer stages of a wrong one cost 40-60 ms; at half the
 # threshold ModelNet40 partial pairs lost right candidates (47.5 -> 32.5 % of 40): docs/DESIGN.md, "The ICP gate".
 ICP_GATE = 0.25
+# An agent estimate ends the request before the global match only this sure: between the status threshold and this,
+# the global match's cheapest candidate is tried beside it and the more confident wins. On RGB-D fragments cut to
+# 40-60 % the agent slid along walls to answers 7-18° off that scored 0.43-0.46 (`converged`), where right ones
+# scored 0.46-0.57; every early exit on ModelNet40 (noisy, partial) and on the object scans scored 0.64 or more
+# (docs/DESIGN.md, "A surer bar for ending before the global match").
+EXIT_CONFIDENCE = 0.55
 
 
 def check_icp_stages(stages: tuple[IcpStage, ...]) -> None:
@@ -82,7 +88,9 @@ class RegistrationConfig:
     confirms). ``polish``: with ICP, refine the winning candidate once more (small_gicp's GICP where the surface
     is smooth at its resolution; ``engine.polish``). ``icp_gate``: a candidate whose quick confidence after the
     first ICP iterations is below ``icp_gate`` times the status threshold is not refined further (``None``: every
-    candidate gets every stage). ``icp_guard``: keep a candidate's estimate instead of its ICP result when that
+    candidate gets every stage). ``exit_confidence``: with ``global_match``, the confidence an exit check before it
+    needs to end the request (``None``: the status threshold); a ``converged`` result below it gets the global
+    match as a rival. ``icp_guard``: keep a candidate's estimate instead of its ICP result when that
     scores lower (off for the paper's v2: its ICP result, whatever it is).
     """
 
@@ -102,6 +110,7 @@ class RegistrationConfig:
     confirm_arrival: bool = True
     polish: bool = False
     icp_gate: float | None = None
+    exit_confidence: float | None = None
     icp_guard: bool = False
 
     def __post_init__(self) -> None:
@@ -118,6 +127,8 @@ class RegistrationConfig:
             raise ValueError(f"refine_top must be >= 1, got {self.refine_top}")
         if self.icp_gate is not None and not 0.0 <= self.icp_gate <= 1.0:
             raise ValueError(f"icp_gate must be in [0, 1] or None, got {self.icp_gate}")
+        if self.exit_confidence is not None and not 0.0 <= self.exit_confidence <= 1.0:
+            raise ValueError(f"exit_confidence must be in [0, 1] or None, got {self.exit_confidence}")
         if self.walk_steps < 0:
             raise ValueError(f"walk_steps must be >= 0, got {self.walk_steps}")
 
@@ -148,5 +159,6 @@ SERVICE_DEFAULT = PAPER_V2.with_(
     confirm_arrival=False,
     polish=True,
     icp_gate=ICP_GATE,
+    exit_confidence=EXIT_CONFIDENCE,
     icp_guard=True,
 )

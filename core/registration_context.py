@@ -145,6 +145,12 @@ class RegistrationContext:
     def confident(self) -> bool:
         return self.best is not None and self.best.confidence.status == "converged"
 
+    @property
+    def sure(self) -> bool:
+        """Confident enough to skip the global match: ``converged`` and at least ``config.exit_confidence``."""
+        bar = self.config.exit_confidence
+        return self.confident and (bar is None or self.best.confidence.score >= bar)  # type: ignore[union-attr]
+
     def evaluate(self, T_unit: Array) -> Confidence:
         with self.timer.stage("confidence"):
             return self.estimator.evaluate(T_unit)

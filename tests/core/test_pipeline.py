@@ -298,3 +298,41 @@ def test_global_candidates_are_asked_for_cheapest_first_until_one_is_confident()
     assert asked == ["coarse", "fine"]
     assert reg.candidate == "global_match" and reg.confidence.status == "converged"
     assert isotropic_errors(reg.T_target_source, T)[0] < 1e-4
+
+
+def test_an_agent_exit_short_of_sure_gets_the_global_match_as_a_rival():
+    """``exit_confidence``: an agent estimate that is ``converged`` but below the bar does not end the request
+    before the global match; the global candidate is asked for and the more confident wins. At or above the bar,
+    the request ends at the exit check and the global match is never asked."""
+    src, tgt, T = rotated_problem(40.0)
+    truth = unit_truth(src, tgt, T)
+    off = truth.copy()
+    off[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.deg2rad(4.0)]).as_matrix() @ truth[:3, :3]  # 0.87: converged
+
+    def short_icp(s, t, init, res=None, proceed=None):  # the agent's estimate stops short; the truth stays
+        return IcpResult((truth if np.allclose(init, truth) else off).copy(), 1.0, 0.0)
+
+    asked = []
+
+    def candidates(s, t, res, seed, viewpoint):
+        asked.append(seed)
+        yield truth.copy()
+
+    def run(bar):
+        config = RegistrationConfig(
+            icp_stages=(("point_to_plane", 2.0),),
+            exit_checks=(20, 40),
+            global_match=True,
+            exit_confidence=bar,
+        )
+        oracle = RangeLimitedOracle(src, tgt, T)
+        return register(src, tgt, oracle, np.random.default_rng(0), config, icp=short_icp, global_match_fn=candidates)
+
+    plain = run(None)  # the status threshold is the bar: the agent's converged estimate ends the request
+    agent_score = plain.confidence.score
+    assert plain.candidate == "agent" and plain.confidence.status == "converged" and asked == []
+    assert agent_score < 1.0
+    assert run(agent_score).candidate == "agent" and asked == []  # sure: at the bar
+    rival = run(min(1.0, agent_score + 0.01))
+    assert asked == [0] and rival.candidate == "global_match" and rival.confidence.score > agent_score
+    assert isotropic_errors(rival.T_target_source, T)[1] < 1e-6
