@@ -216,7 +216,9 @@ class RegisterResponse(BaseModel):
         "the winning start (the trajectory begins there)"
     )
     exit_checks: list[ExitCheck] = Field(
-        default_factory=list, description="the exit checks that ran, in order; the agent stopped after a converged one"
+        default_factory=list,
+        description="the exit checks that ran, in order; the agent stopped after a converged one (before the global "
+        f"match, only at confidence {SERVICE_DEFAULT.exit_confidence} or more)",
     )
     rescued: Literal["wide_icp", "restarts"] | None = Field(
         None,
