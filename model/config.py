@@ -51,6 +51,11 @@ class NetConfig:
     # at inference"). Set at export (``pranet-export --match-passes``), never in training.
     inference_passes: int = 0
     reward_head: str = "mlp"  # "mlp" | "analytic"
+    # sinkhorn: a score per point, from its cross-attended features, of having a counterpart in the other cloud
+    # (PREDATOR's and OMNet's overlap masks); its log-sigmoid lowers the point's matching logits, so points of a
+    # cropped-away part go to the slack. Trained with ``OptimConfig.overlap_weight`` (docs/DESIGN.md, "An overlap
+    # head").
+    overlap_head: bool = False
 
     def __post_init__(self) -> None:
         if self.matching not in ("softmax", "sinkhorn"):
@@ -63,6 +68,9 @@ class NetConfig:
             self.correspondence and self.matching == "sinkhorn" and self.center_inputs
         ):
             raise ValueError("reward_head='analytic' needs correspondence, matching='sinkhorn' and center_inputs")
+
+        if self.overlap_head and self.matching != "sinkhorn":
+            raise ValueError("overlap_head needs matching='sinkhorn'")
 
     def to_dict(self) -> dict:
         return asdict(self)

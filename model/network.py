@@ -244,10 +244,29 @@ class SinkhornCorrespondence(nn.Module):
     # neighbours of a unit-sized cloud of a few hundred points are ~1e-2.
     PARAM_SCALES = (20.0, 200.0, 2.0)
 
-    def __init__(self, dim: int, pooled_dim: int, iterations: int, passes: int = 1, inference_passes: int = 0) -> None:
+    # The overlap head starts out saying "every point has a counterpart" (log σ(4) = -0.02 on every logit), so a
+    # network warm-started from one without it matches as before.
+    OVERLAP_START_BIAS = 4.0
+
+    def __init__(
+        self,
+        dim: int,
+        pooled_dim: int,
+        iterations: int,
+        passes: int = 1,
+        inference_passes: int = 0,
+        overlap: bool = False,
+    ) -> None:
         super().__init__()
         self.q = nn.Linear(dim, dim)
         self.k = nn.Linear(dim, dim)
+        self.overlap: nn.Linear | None = None
+        if overlap:
+            self.overlap = nn.Linear(dim, 1)
+            nn.init.zeros_(self.overlap.weight)
+            nn.init.constant_(self.overlap.bias, self.OVERLAP_START_BIAS)
+        # The last call's overlap logits ``((B, N), (B, M))``, for the training loss (None without the head).
+        self.overlap_logits: tuple[Tensor, Tensor] | None = None
         self.passes = passes
         self.params = nn.Sequential(nn.Linear(2 * pooled_dim, 64), nn.ReLU(), nn.Linear(64, 3 * passes))
         self.register_buffer("param_scales", torch.tensor(self.PARAM_SCALES), persistent=False)
@@ -265,6 +284,11 @@ class SinkhornCorrespondence(nn.Module):
         qx = nn.functional.normalize(self.q(fx), dim=-1)  # (B, N, D)
         ky = nn.functional.normalize(self.k(fy), dim=-1)  # (B, M, D)
         similarity = qx @ ky.transpose(1, 2)  # (B, N, M)
+        prior: Tensor | None = None  # (B, N, M) log-probabilities that both points of a match overlap
+        if self.overlap is not None:
+            ox, oy = self.overlap(fx).squeeze(-1), self.overlap(fy).squeeze(-1)  # (B, N), (B, M)
+            self.overlap_logits = (ox, oy)
+            prior = nn.functional.logsigmoid(ox).unsqueeze(2) + nn.functional.logsigmoid(oy).unsqueeze(1)
         y_sq = (y * y).sum(-1).unsqueeze(1)  # (B, 1, M)
         R = torch.eye(3, dtype=x.dtype, device=x.device).expand(B, 3, 3)
         r = torch.zeros_like(x[:, 0])
@@ -272,7 +296,8 @@ class SinkhornCorrespondence(nn.Module):
             beta, gamma, alpha = (params[:, i, j].view(B, 1, 1) for j in range(3))
             moved = x @ R.transpose(1, 2) + r.unsqueeze(1)  # (B, N, 3)
             d2 = (moved * moved).sum(-1, keepdim=True) - 2.0 * moved @ y.transpose(1, 2) + y_sq  # (B, N, M)
-            P = sinkhorn_with_slack(beta * similarity - gamma * d2 - alpha, self.iterations)
+            logits = beta * similarity - gamma * d2 - alpha
+            P = sinkhorn_with_slack(logits if prior is None else logits + prior, self.iterations)
             R_i, r_i = weighted_procrustes(P, moved, y)
             R, r = R_i @ R, (R_i @ r.unsqueeze(-1)).squeeze(-1) + r_i
         return torch.cat([R.flatten(1), r], dim=-1)
@@ -344,7 +369,9 @@ class RewardNet(nn.Module):
         self.correspondence: nn.Module | None = None
         if cfg.correspondence:
             self.correspondence = (
-                SinkhornCorrespondence(D, pooled, cfg.sinkhorn_iters, cfg.match_passes, cfg.inference_passes)
+                SinkhornCorrespondence(
+                    D, pooled, cfg.sinkhorn_iters, cfg.match_passes, cfg.inference_passes, cfg.overlap_head
+                )
                 if cfg.matching == "sinkhorn"
                 else SoftCorrespondence(D)
             )

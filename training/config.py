@@ -39,6 +39,7 @@ class OptimConfig:
     reward_weight: float = 1.0  # the paper's reward MSE
     pose_weight: float = 0.0  # analytic networks: the estimated residual pose against the true one
     pose_loss: str = "absolute"  # "absolute" (RPMNet: mean point distance) | "relative" (÷ the state's own size)
+    overlap_weight: float = 0.0  # networks with an overlap head: binary cross-entropy against the true overlap
 
 
 @dataclass(frozen=True)

@@ -87,11 +87,32 @@ def pose_error(R_hat: torch.Tensor, t_hat: torch.Tensor, R: torch.Tensor, t: tor
     return diff.norm(dim=-1).mean(dim=1)
 
 
+# A point overlaps the other cloud when its true place is within this many of that cloud's median point spacings of
+# a point of it: the two clouds are independent samples, so a point of the shared part has a neighbour about a
+# spacing away, and a cropped-away one only beyond the cut.
+OVERLAP_SPACINGS = 2.0
+
+
+def overlap_labels(
+    src: torch.Tensor, tgt: torch.Tensor, R: torch.Tensor, t: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Whether each point of ``src: (B, N, 3)`` (at its true place: ``R (p - c) + c + t``, ``c`` its centroid) and
+    of ``tgt: (B, M, 3)`` has a counterpart in the other cloud -> float ``(B, N)``, ``(B, M)``."""
+    c = src.mean(dim=1, keepdim=True)
+    placed = (src - c) @ R.transpose(1, 2) + c + t.unsqueeze(1)
+    d = torch.cdist(placed, tgt)  # (B, N, M)
+    own = torch.cdist(tgt, tgt) + torch.eye(tgt.shape[1]) * 1e9  # (B, M, M), no point its own neighbour
+    spacing = own.amin(dim=2).median(dim=1).values.view(-1, 1)  # (B, 1)
+    near = OVERLAP_SPACINGS * spacing
+    return (d.amin(dim=2) < near).float(), (d.amin(dim=1) < near).float()
+
+
 def batch_loss(
     net: torch.nn.Module, batch: tuple[torch.Tensor, ...], cfg: TrainConfig
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``(loss (), per-sample reward MSE (B,))``: ``reward_weight`` × reward MSE (paper, "Loss function")
-    + ``pose_weight`` × the pose error of the analytic head's estimate (beyond the paper)."""
+    + ``pose_weight`` × the pose error of the analytic head's estimate (beyond the paper) + ``overlap_weight`` × the
+    overlap head's binary cross-entropy (mean of the two clouds')."""
     src, src_knn, tgt, tgt_knn, g, R, t = batch
     core = net.module if hasattr(net, "module") else net
     if cfg.optim.pose_weight and getattr(core, "analytic", None) is not None:
@@ -106,7 +127,13 @@ def batch_loss(
     else:
         rewards, pose = net(src, src_knn, tgt, tgt_knn), torch.zeros(())
     mse = ((rewards - g) ** 2).mean(dim=1)
-    return cfg.optim.reward_weight * mse.mean() + cfg.optim.pose_weight * pose, mse.detach()
+    loss = cfg.optim.reward_weight * mse.mean() + cfg.optim.pose_weight * pose
+    head = getattr(core.correspondence, "overlap_logits", None) if cfg.optim.overlap_weight else None
+    if head is not None:  # set by the forward pass above
+        labels = overlap_labels(src, tgt, R, t)
+        bce = [torch.nn.functional.binary_cross_entropy_with_logits(o, y) for o, y in zip(head, labels, strict=True)]
+        loss = loss + cfg.optim.overlap_weight * (bce[0] + bce[1]) / 2
+    return loss, mse.detach()
 
 
 def build_optimizer(

@@ -19,6 +19,15 @@ NETS = {
     "analytic rewards (2.x)": NetConfig(
         n_points=128, pool="maxmean", correspondence=True, matching="sinkhorn", reward_head="analytic", match_passes=3
     ),
+    "with an overlap head": NetConfig(
+        n_points=128,
+        pool="maxmean",
+        correspondence=True,
+        matching="sinkhorn",
+        reward_head="analytic",
+        match_passes=3,
+        overlap_head=True,
+    ),
 }
 
 

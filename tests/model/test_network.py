@@ -269,3 +269,41 @@ def test_rounds_beyond_the_trained_ones_run_at_inference_and_bring_an_icp_like_m
         assert net.correspondence.train().rounds() == [0]  # training runs the trained round only
     assert errors[1] == pytest.approx(errors[0], abs=1e-9)
     assert errors[4] < 0.5 * errors[1] and errors[1] > 1.0, errors
+
+
+def test_the_overlap_head_takes_the_points_it_calls_unshared_out_of_the_pose():
+    """A position-only match of a cloud whose x > 0 half has moved 0.1 along x (a part the other cloud does not
+    share): the estimate is dragged toward that half. An overlap head that scores those points as unshared (a
+    feature channel marks them; its weight makes their logit -20) leaves them to the slack, and the estimate is
+    the shared half's, the identity. A fresh head (weight 0, bias +4) matches almost as a network without one."""
+    from pranet.model.network import SinkhornCorrespondence
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(5)
+    y = torch.from_numpy(rng.normal(size=(1, 128, 3)) * [1.0, 0.6, 0.3]).float()
+    moved = (y[0, :, 0] > 0).float()  # (128,)
+    x = y + 0.1 * moved.view(1, -1, 1) * torch.tensor([1.0, 0.0, 0.0])
+    fx = torch.zeros(1, 128, 8)
+    fx[0, :, 0] = moved  # the channel the head reads
+    fy = torch.zeros(1, 128, 8)
+
+    def estimate(overlap: bool, weight: float | None = None) -> torch.Tensor:
+        match = SinkhornCorrespondence(8, 4, iterations=10, passes=1, overlap=overlap).eval()
+        with torch.no_grad():
+            match.params[-1].weight.zero_()
+            match.params[-1].bias.copy_(torch.tensor([-30.0, -1.0, 0.0]))  # β ≈ 0, γ ≈ 63: positions only
+            if weight is not None:
+                match.overlap.weight.zero_()
+                match.overlap.weight[0, 0] = weight
+                match.overlap.bias.fill_(20.0)
+            return match(fx, fy, x, y, torch.zeros(1, 8))[0, 9:]  # the translation
+
+    plain, fresh, told = estimate(False), estimate(True), estimate(True, weight=-40.0)
+    assert plain[0] < -0.02  # dragged: the estimate moves the source back by part of the moved half's 0.1
+    torch.testing.assert_close(fresh, plain, atol=2e-3, rtol=0.0)
+    assert told.abs().max() < 0.1 * plain.abs().max(), (told, plain)
+
+
+def test_an_overlap_head_needs_sinkhorn_matching():
+    with pytest.raises(ValueError, match="overlap_head"):
+        NetConfig(correspondence=True, overlap_head=True)

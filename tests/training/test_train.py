@@ -187,3 +187,28 @@ def test_the_state_labels_move_the_resampled_source_onto_its_truth(data_root):
         placed = (src - c) @ R.T + c + t
         d = np.linalg.norm(placed[:, None] - tgt[None], axis=-1).min(axis=1)
         assert (d < 1e-5).mean() > 0.1, (d < 1e-5).mean()
+
+
+def test_overlap_labels_mark_the_shared_part_at_the_true_pose():
+    """Target = the half x > 0 of a plane sampled at random, the source the whole plane moved off by a known pose:
+    at the true pose the source's x > 0 part overlaps, its x < 0 part does not, and every target point does."""
+    import torch
+    from scipy.spatial.transform import Rotation
+
+    from pranet.training.train import overlap_labels
+
+    rng = np.random.default_rng(0)
+    plane = rng.uniform(-1.0, 1.0, (256, 3)) * [1.0, 1.0, 0.0]
+    target = plane[plane[:, 0] > 0]
+    R = Rotation.from_rotvec([0.2, -0.1, 0.3]).as_matrix()
+    m = plane.mean(axis=0)
+    source = (plane - m) @ R + m + [0.4, -0.3, 0.2]  # rows Rᵀ (p - m) + c, c = m + (0.4, -0.3, 0.2) its centroid
+    t = m - source.mean(axis=0)  # R (source - c) + c + t = plane
+    src_labels, tgt_labels = overlap_labels(
+        *(torch.tensor(a[None], dtype=torch.float32) for a in (source, target)),
+        torch.tensor(R[None], dtype=torch.float32),
+        torch.tensor(t[None], dtype=torch.float32),
+    )
+    x = plane[:, 0]
+    assert src_labels[0][x > 0.2].min() == 1 and src_labels[0][x < -0.2].max() == 0
+    assert tgt_labels.min() == 1
