@@ -18,6 +18,7 @@ origin, 19 matches and 6° (docs/DESIGN.md, "The global match's viewpoint").
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -142,24 +143,41 @@ def ransac_global_match(source: Array, target: Array, resolution: Resolution, se
     tgt, tgt_f = _fpfh(subsample(target, MAX_POINTS, seed=seed + 1), voxel)
     o3d.utility.random.seed(seed)  # Open3D's RANSAC draws from its one global generator
     distance = RANSAC_CHECK_VOXELS * voxel
-    result = reg.registration_ransac_based_on_feature_matching(
-        src,
-        tgt,
-        src_f,
-        tgt_f,
-        False,
-        distance,
-        reg.TransformationEstimationPointToPoint(False),
-        3,
-        [
-            reg.CorrespondenceCheckerBasedOnEdgeLength(EDGE_LENGTH_RATIO),
-            reg.CorrespondenceCheckerBasedOnDistance(distance),
-        ],
-        reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, RANSAC_CONFIDENCE),
-    )
+    with one_open3d_thread():
+        result = reg.registration_ransac_based_on_feature_matching(
+            src,
+            tgt,
+            src_f,
+            tgt_f,
+            False,
+            distance,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
+            [
+                reg.CorrespondenceCheckerBasedOnEdgeLength(EDGE_LENGTH_RATIO),
+                reg.CorrespondenceCheckerBasedOnDistance(distance),
+            ],
+            reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, RANSAC_CONFIDENCE),
+        )
     if len(result.correspondence_set) < MIN_FINAL_INLIERS:
         return None
     return np.asarray(result.transformation).copy()
+
+
+@contextmanager
+def one_open3d_thread() -> Iterator[None]:
+    """Open3D limited to one thread inside, its limit restored after. Its RANSAC's threads draw their samples from
+    the one seeded generator in whatever order they are scheduled, so with several threads the same seed gives
+    another answer under another load (Open3D issue #7475; it happened once in CI, 8e-4 apart); with one it is
+    repeatable. The cost: 300-600 ms more where RANSAC runs (pairs KISS-Matcher cannot support, 0.45-0.8 s before)."""
+    import open3d as o3d
+
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def _fpfh(points: Array, voxel: float):  # -> (open3d cloud on the voxel grid, its FPFH features)
