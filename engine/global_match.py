@@ -12,7 +12,8 @@ side of the surface), which assumes the origin is where the sensor was. Scans co
 range scanner's, an RGB-D camera's, a LiDAR's), so it runs about ``viewpoint``, the input frame's origin, not about
 the unit frame's centre: centred, the two fragments of the 3DMatch demo pair had their normals turned toward two
 different points of the room and it found one consistent match (74° off, then 450 ms of RANSAC); about the input
-origin, 19 matches and 6° (docs/DESIGN.md, "The global match's viewpoint").
+origin, 19 matches and 6° (docs/DESIGN.md, "The global match: where it looks from, on which grid, and when
+RANSAC follows").
 """
 
 from __future__ import annotations
@@ -32,11 +33,12 @@ SCALED_VOXEL = 1.0
 # KISS-Matcher's grids, in voxels, coarsest first. Its answer only has to land within the first ICP stage's window
 # (8 spacings: 2 voxels), and on a grid of 2 voxels it costs 2-3x less (about 75 against 185 ms on the object scans)
 # with the same final answers on all 36 real-scan pairs we have; on 3 voxels it lost 4 of them. The finer grid runs
-# only when the coarse answer, refined, is not confident (docs/DESIGN.md, "The global match's grid").
+# only when the coarse answer, refined, is not confident (docs/DESIGN.md, "The global match: where it looks from,
+# on which grid, and when RANSAC follows").
 KISS_GRIDS = (2.0, 1.0)
 MIN_FINAL_INLIERS = 3  # fewer translation inliers: no answer (three matches fix a rigid motion)
 # An answer resting on fewer matches is still offered, but RANSAC (another algorithm, other failures) follows it when
-# it is not confident: on the 36 real-scan pairs right answers rest on 16-650 matches and wrong ones on 0-4, as did a
+# it is not confident: on the 36 real-scan pairs right answers rest on 16-650 matches and wrong ones on 0-6, as did a
 # wrong one, 110° off, on a 256-point synthetic shape that RANSAC then got right; a LiDAR pair's 68-133 spare it
 # 2.5 s of RANSAC.
 TRUSTED_INLIERS = 10

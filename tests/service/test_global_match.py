@@ -129,7 +129,8 @@ def test_the_viewpoint_moves_the_frame_not_the_answer():
 def test_an_rgbd_pair_is_matched_seen_from_its_sensors(scans_dir):
     """The 3DMatch demo pair: each fragment comes in its camera's frame. About the input origin (the pipeline's
     viewpoint) KISS-Matcher alone lands within 3DMatch's recall thresholds; about the unit frame's centre it found
-    one consistent match, 74° off (docs/DESIGN.md, "The global match's viewpoint")."""
+    one consistent match, 74° off (docs/DESIGN.md, "The global match: where it looks from, on which grid, and
+    when RANSAC follows")."""
     from pranet.client.io import read_point_cloud
     from pranet.core.registration_context import prepare
     from pranet.training.bench.scan_pairs import SCENE, is_right, pose_errors, read_pairs
