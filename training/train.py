@@ -457,6 +457,9 @@ def main(argv: list[str] | None = None) -> int:
     if rank == 0 and end_epoch == cfg.optim.epochs:
         write_summary(run)
     if world > 1:
+        # Rank 0 validates and writes while the others skip ahead to here; tearing down before it has
+        # finished closed its peers' connections under them (CI, once: one rank aborted with SIGABRT).
+        dist.barrier()
         dist.destroy_process_group()
     return 0
 
