@@ -135,7 +135,12 @@ def agent_from_input_pose(ctx: RegistrationContext, score_fn: ScoreFn, until: in
         extend(agent, part)
         ctx.agent_scheduled = scheduled
         if scheduled in checks and scheduled < total:  # an exit check
-            checked = ctx.offer(AGENT, agent.transform, agent_index=0)
+            if until is not None and ctx.config.defer_doubtful:  # before the global match
+                checked = ctx.offer_or_defer(AGENT, agent.transform, agent_index=0, steps=len(agent.steps))
+                if checked is None:
+                    return  # waits behind the global match
+            else:
+                checked = ctx.offer(AGENT, agent.transform, agent_index=0)
             ctx.checks.append((len(agent.steps), checked.confidence.score))
             if ctx.sure if until is not None else ctx.confident:  # before the global match: the surer bar
                 return
@@ -185,7 +190,11 @@ def global_match(ctx: RegistrationContext) -> None:
     assert ctx.global_match is not None
     c = ctx.clouds
     for T in ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed, c.viewpoint):
-        ctx.offer(GLOBAL_MATCH, T)
+        if ctx.config.defer_doubtful:
+            ctx.offer_or_defer(GLOBAL_MATCH, T)
+            ctx.offer_deferred()
+        else:
+            ctx.offer(GLOBAL_MATCH, T)
         if ctx.confident:
             return
 
@@ -290,13 +299,16 @@ def register(
                 global_match(ctx)
     else:
         # 3. The agent from the input pose, to its first exit check (its coarse phase) when the global match may
-        # follow; 4. the global match unless the agent is sure (``exit_confidence``); 5. the rest of the agent's
-        # schedule, unless something is confident by then.
+        # follow; 4. the global match unless the agent is sure (``exit_confidence``), then the agent's estimate if
+        # it waited behind it (``defer_doubtful``); 5. the rest of the agent's schedule, unless something is
+        # confident by then.
         first_check = min(config.exit_checks, default=None) if ctx.global_match is not None else None
         agent_from_input_pose(ctx, score_fn, until=first_check)
         if ctx.global_match is not None and not ctx.sure:
             with timer.stage("global_match"):
                 global_match(ctx)
+        if not ctx.confident:
+            ctx.offer_deferred()
         if not ctx.confident:
             agent_from_input_pose(ctx, score_fn)
     # 6. The rescues of a still unconfident result.

@@ -91,7 +91,10 @@ class RegistrationConfig:
     candidate gets every stage). ``exit_confidence``: with ``global_match``, the confidence an exit check before it
     needs to end the request (``None``: the status threshold); a ``converged`` result below it gets the global
     match as a rival. ``icp_guard``: keep a candidate's estimate instead of its ICP result when that
-    scores lower (off for the paper's v2: its ICP result, whatever it is).
+    scores lower (off for the paper's v2: its ICP result, whatever it is). ``defer_doubtful``: with ``icp_gate``
+    and ``global_match``, on dense clouds, an agent estimate (or a global candidate) that does not yet look
+    ``converged`` after the gate's iterations waits, part-refined; the waiting ones are refined best first once the
+    next global candidate has been seen, until one is ``sure``.
     """
 
     icp_stages: tuple[IcpStage, ...] = ()
@@ -112,6 +115,7 @@ class RegistrationConfig:
     icp_gate: float | None = None
     exit_confidence: float | None = None
     icp_guard: bool = False
+    defer_doubtful: bool = False
 
     def __post_init__(self) -> None:
         check_icp_stages(self.icp_stages)
@@ -161,4 +165,5 @@ SERVICE_DEFAULT = PAPER_V2.with_(
     icp_gate=ICP_GATE,
     exit_confidence=EXIT_CONFIDENCE,
     icp_guard=True,
+    defer_doubtful=True,
 )

@@ -17,11 +17,11 @@ import numpy.typing as npt
 
 from pranet.core.actions import ActionTable
 from pranet.core.agent import AgentResult, ScoreFn
-from pranet.core.confidence import Confidence, ConfidenceEstimator
+from pranet.core.confidence import SPARSE_FROM, Confidence, ConfidenceEstimator
 from pranet.core.nearest import PointIndex, subsample
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
 from pranet.core.registration_config import RegistrationConfig
-from pranet.core.registration_types import Candidate, GlobalMatchFn, IcpFn, PolishFn
+from pranet.core.registration_types import Candidate, Deferred, GlobalMatchFn, IcpFn, IcpResult, PolishFn
 from pranet.core.resolution import Resolution, measure_resolution
 from pranet.core.se3 import Array
 from pranet.core.stage_timer import StageTimer
@@ -119,6 +119,7 @@ class RegistrationContext:
     best: Candidate | None = None
     best_agent: Candidate | None = None  # the most confident of the agent's own candidates (its runs, refined)
     tried: dict[str, float] = field(default_factory=dict)  # candidate name -> its best confidence
+    deferred: list[Deferred] = field(default_factory=list)  # doubtful candidates waiting, part-refined
     scorers: list[object] = field(default_factory=list)  # the score functions made (their ``calls``, when counted)
 
     @property
@@ -155,31 +156,33 @@ class RegistrationContext:
         with self.timer.stage("confidence"):
             return self.estimator.evaluate(T_unit)
 
-    def refine(self, T_unit: Array):  # -> IcpResult
+    def refine(self, T_unit: Array, bar: float | None) -> tuple[IcpResult, float | None]:
+        """ICP from ``T_unit``. With ``bar``, the quick confidence after the gate's first iterations is asked: under
+        ``bar`` times the status threshold, the estimate is not refined further. Returns the result and that quick
+        confidence (``None``: not asked)."""
         assert self.icp is not None
-        c, gate = self.clouds, self.config.icp_gate
-        with self.timer.stage("icp"):
-            if gate is None:
-                return self.icp(c.src_unit, c.tgt_unit, T_unit, c.resolution)
-            return self.icp(c.src_unit, c.tgt_unit, T_unit, c.resolution, proceed=self.promising(gate))
+        c, quick = self.clouds, []
 
-    def promising(self, gate: float):  # -> Callable[[Array], bool]
-        """Whether an estimate, part-refined, is worth the rest of the ICP: its quick confidence reaches ``gate``
-        times the status threshold."""
-
-        def proceed(T_unit: Array) -> bool:
+        def proceed(T: Array) -> bool:
             with self.timer.stage("confidence"):
-                score = self.estimator.evaluate(T_unit, RANK_QUERIES).score
-            return score >= gate * self.estimator.threshold
+                quick.append(self.estimator.evaluate(T, RANK_QUERIES).score)
+            return quick[-1] >= bar * self.estimator.threshold  # type: ignore[operator]
 
-        return proceed
+        with self.timer.stage("icp"):
+            if bar is None:
+                return self.icp(c.src_unit, c.tgt_unit, T_unit, c.resolution), None
+            result = self.icp(c.src_unit, c.tgt_unit, T_unit, c.resolution, proceed=proceed)
+        return result, (quick[-1] if quick else None)
 
-    def offer(self, name: str, T_unit: Array, agent_index: int | None = None) -> Candidate:
-        """Refine ``T_unit`` (when ICP is on), score it, and keep it if it beats ``best``. With ``icp_guard``, a
-        refinement that scores below the estimate it started from is dropped: point-to-plane ICP on a sparse
-        partial shape can slide along a flat part, or solve a degenerate system, and end far off (docs/DESIGN.md,
-        "When ICP makes it worse")."""
-        refined = self.refine(T_unit) if self.icp is not None else None
+    def offer(
+        self, name: str, T_unit: Array, agent_index: int | None = None, refined: IcpResult | None = None
+    ) -> Candidate:
+        """Refine ``T_unit`` (when ICP is on, and unless ``refined`` already is its refinement), score it, and keep
+        it if it beats ``best``. With ``icp_guard``, a refinement that scores below the estimate it started from is
+        dropped: point-to-plane ICP on a sparse partial shape can slide along a flat part, or solve a degenerate
+        system, and end far off (docs/DESIGN.md, "When ICP makes it worse")."""
+        if refined is None and self.icp is not None:
+            refined, _ = self.refine(T_unit, self.config.icp_gate)
         T = refined.transform if refined is not None else T_unit
         confidence = self.evaluate(T)
         if refined is not None and self.config.icp_guard:
@@ -193,6 +196,39 @@ class RegistrationContext:
         if agent_index is not None and candidate.beats(self.best_agent):
             self.best_agent = candidate
         return candidate
+
+    def offer_or_defer(
+        self, name: str, T_unit: Array, agent_index: int | None = None, steps: int | None = None
+    ) -> Candidate | None:
+        """``offer``, unless the estimate's quick confidence after the ICP gate's iterations is between the gate
+        and the status threshold: then the rest of its ICP waits in ``deferred`` for ``offer_deferred`` and
+        ``None`` is returned. Such an estimate is as often wrong as right, and a wrong one takes every iteration of
+        every ICP stage (100-250 ms on an object scan); waiting, it is refined only if a more promising candidate
+        does not settle the request first (docs/DESIGN.md, "Doubtful candidates wait their turn"). Dense clouds
+        only: on sparse ones (ModelNet40's) a wrong estimate's whole ICP costs a few milliseconds, less than the
+        global match that waiting makes it run."""
+        gate = self.config.icp_gate
+        if self.icp is None or gate is None or self.clouds.resolution.relative_spacing > SPARSE_FROM:
+            return self.offer(name, T_unit, agent_index)
+        refined, quick = self.refine(T_unit, 1.0)
+        if quick is not None and gate * self.estimator.threshold <= quick < self.estimator.threshold:
+            self.deferred.append(Deferred(name, T_unit, refined.transform, quick, agent_index, steps))
+            return None
+        return self.offer(name, T_unit, agent_index, refined=refined)  # promising, or hopeless as the gate left it
+
+    def offer_deferred(self) -> None:
+        """The waiting candidates, the best quick confidence first, each refined from where the gate left it (as a
+        promising one would have gone on) and offered, until one is ``sure``; an agent's exit check is recorded
+        with its confidence. Those left unrefined are dropped."""
+        waiting = sorted(self.deferred, key=lambda d: -d.quick)
+        self.deferred.clear()
+        for d in waiting:
+            if self.sure:
+                return
+            refined, _ = self.refine(d.part_refined, None)
+            checked = self.offer(d.name, d.T_unit, d.agent_index, refined=refined)
+            if d.steps is not None:
+                self.checks.append((d.steps, checked.confidence.score))
 
     def quick_scores(self, agents: Sequence[AgentResult]) -> list[float]:
         """A quick confidence of each agent's result (fewer query points): to rank starts before refining them."""

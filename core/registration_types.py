@@ -74,6 +74,18 @@ class Candidate:
         return other is None or self.confidence.score > other.confidence.score
 
 
+@dataclass(frozen=True)
+class Deferred:
+    """A doubtful candidate waiting, part-refined, for its turn (``RegistrationConfig.defer_doubtful``)."""
+
+    name: str  # one of CANDIDATES
+    T_unit: Array  # (4, 4) the estimate as offered, unit frame
+    part_refined: Array  # (4, 4) after the ICP gate's iterations
+    quick: float  # its quick confidence there: the waiting ones are refined best first
+    agent_index: int | None = None
+    steps: int | None = None  # an agent estimate's steps at its exit check
+
+
 @dataclass
 class Registration:
     T_target_source: Array  # (4, 4) the result in world units: target ≈ R @ source + t

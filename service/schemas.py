@@ -218,7 +218,9 @@ class RegisterResponse(BaseModel):
     exit_checks: list[ExitCheck] = Field(
         default_factory=list,
         description="the exit checks that ran, in order; the agent stopped after a converged one (before the global "
-        f"match, only at confidence {SERVICE_DEFAULT.exit_confidence} or more)",
+        f"match, only at confidence {SERVICE_DEFAULT.exit_confidence} or more). On dense scans a check whose estimate "
+        "is still doubtful after the first ICP iterations waits behind the global match and is listed only if it "
+        "was refined after all",
     )
     rescued: Literal["wide_icp", "restarts"] | None = Field(
         None,

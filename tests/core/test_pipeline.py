@@ -5,15 +5,18 @@ import pytest
 from oracle_scorer import (
     BatchedRangeLimitedOracle,
     RangeLimitedOracle,
+    asymmetric_cloud,
     rotated_problem,
     snapping_icp,
     unit_truth,
 )
 from scipy.spatial.transform import Rotation
 
+from pranet.core.confidence import ConfidenceEstimator
 from pranet.core.metrics import isotropic_errors
 from pranet.core.pipeline import STAGES, register
 from pranet.core.registration_config import RegistrationConfig
+from pranet.core.registration_context import RANK_QUERIES, prepare
 from pranet.core.registration_types import IcpResult
 from pranet.core.starts import geodesic_distances, start_rotations
 
@@ -336,3 +339,75 @@ def test_an_agent_exit_short_of_sure_gets_the_global_match_as_a_rival():
     rival = run(min(1.0, agent_score + 0.01))
     assert asked == [0] and rival.candidate == "global_match" and rival.confidence.score > agent_score
     assert isotropic_errors(rival.T_target_source, T)[1] < 1e-6
+
+
+def _problem(n: int):
+    """``rotated_problem(40°)``'s pose on an ``n``-point cloud."""
+    _, _, T = rotated_problem(40.0)
+    src = asymmetric_cloud(np.random.default_rng(0), n)
+    return src, src @ T[:3, :3].T + T[:3, 3], T
+
+
+@pytest.mark.parametrize("n_points", [20000, 300], ids=["dense", "sparse"])
+def test_a_doubtful_agent_estimate_waits_behind_the_global_match_on_dense_clouds(n_points):
+    """With ``defer_doubtful``, on a dense cloud, an agent estimate whose quick confidence after the ICP gate's
+    iterations is between the gate and the status threshold is not refined further before the global match: a
+    confident global candidate ends the request and the rest of that ICP never runs; when no global candidate is
+    confident, the estimate is refined from where the gate left it and wins. Without it, and on a sparse cloud
+    (where that ICP is cheap), the agent's estimate is refined in full first and the global match is never asked."""
+    src, tgt, T = _problem(n_points)
+    truth = unit_truth(src, tgt, T)
+    clouds = prepare(src, tgt, 256, np.random.default_rng(0))
+    estimator = ConfidenceEstimator(clouds.src_index, clouds.tgt_index, clouds.resolution)
+    doubtful = truth.copy()
+    doubtful[0, 3] += 1.5 * clouds.resolution.spacing  # where the gate's iterations leave the agent's estimate
+    gate = 0.25
+    assert gate * estimator.threshold <= estimator.evaluate(doubtful, RANK_QUERIES).score < estimator.threshold
+    wrong = truth @ np.diag([-1.0, -1.0, 1.0, 1.0])
+    starts = []
+
+    def icp(s, t, init, res=None, proceed=None):
+        starts.append(("gated" if proceed is not None else "full", init.copy()))
+        if proceed is not None:
+            near = isotropic_errors(init, truth)[0] < 12.0
+            part = truth if np.allclose(init, truth) else doubtful if near else init
+            if not proceed(part):
+                return IcpResult(part.copy(), 0.5, 0.0)
+            init = part
+        return IcpResult((truth if isotropic_errors(init, truth)[0] < 12.0 else init).copy(), 1.0, 0.0)
+
+    def run(candidates, defer=True):
+        starts.clear()
+        config = RegistrationConfig(
+            icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), global_match=True, icp_gate=gate
+        )
+        return register(
+            src,
+            tgt,
+            RangeLimitedOracle(src, tgt, T),
+            np.random.default_rng(0),
+            config.with_(defer_doubtful=defer),
+            icp=icp,
+            global_match_fn=lambda s, t, res, seed, viewpoint: iter([c.copy() for c in candidates]),
+        )
+
+    def refined_from_doubtful():
+        return any(kind == "full" and np.allclose(init, doubtful) for kind, init in starts)
+
+    def refined_first(reg):
+        assert reg.candidate == "agent" and not refined_from_doubtful()
+        assert len(starts) == 1  # the agent's refinement went on past the gate; no global candidate was refined
+
+    if n_points < 1000:
+        refined_first(run([truth]))
+        return
+    settled = run([truth])
+    assert settled.candidate == "global_match" and settled.confidence.status == "converged"
+    assert not refined_from_doubtful() and settled.checks == []
+
+    waited = run([wrong])
+    assert waited.candidate == "agent" and waited.confidence.status == "converged"
+    assert refined_from_doubtful() and waited.checks == [(20, pytest.approx(1.0))]
+    assert isotropic_errors(waited.T_target_source, T)[0] < 1e-4
+
+    refined_first(run([truth], defer=False))
