@@ -20,7 +20,9 @@ def subsample(points: npt.ArrayLike, n_max: int, seed: int = 0) -> Array:
 
 class PointIndex:
     """One cloud ``points: (M, 3)``, indexed once for any number of nearest-neighbour queries: scipy's KD-tree when
-    installed (built once: 5-10 ms for a 40k-point scan), else chunked brute force."""
+    installed, else chunked brute force. The tree splits at the midpoint of its cells, not at the median: on a
+    40k-point scan it builds in 6-7 ms instead of 12 and answers a registration's queries as fast (the answers are
+    exact either way); every request builds two."""
 
     def __init__(self, points: npt.ArrayLike, chunk: int = CHUNK) -> None:
         self.points = np.asarray(points, dtype=np.float64)
@@ -30,7 +32,7 @@ class PointIndex:
         except ImportError:
             self._tree = None
         else:
-            self._tree = cKDTree(self.points)
+            self._tree = cKDTree(self.points, balanced_tree=False)
 
     def neighbours(self, queries: npt.ArrayLike, k: int) -> tuple[Array, npt.NDArray[np.int64]]:
         """The ``k`` nearest points of each row of ``queries: (Q, 3)``, nearest first: distances and indices,
