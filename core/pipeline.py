@@ -138,7 +138,7 @@ def agent_from_input_pose(ctx: RegistrationContext, score_fn: ScoreFn, until: in
             if until is not None and ctx.config.defer_doubtful:  # before the global match
                 checked = ctx.offer_or_defer(AGENT, agent.transform, agent_index=0, steps=len(agent.steps))
                 if checked is None:
-                    return  # waits behind the global match
+                    continue  # waits for its turn (offer_deferred)
             else:
                 checked = ctx.offer(AGENT, agent.transform, agent_index=0)
             ctx.checks.append((len(agent.steps), checked.confidence.score))
@@ -175,6 +175,17 @@ def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -
             ctx.start_scores[b] = score
     for b in _top(ctx.start_scores, config.refine_top if ctx.icp is not None else 1):
         ctx.offer(AGENT, agents[b].transform, agent_index=b)
+
+
+def global_match_after(ctx: RegistrationContext) -> int | None:
+    """The agent steps after which the global match runs unless the agent is sure: the last exit check of the
+    coarse phase (a check before it can only end the request early), or the first check if none is in it; ``None``
+    without a global match."""
+    checks = ctx.config.exit_checks
+    if ctx.global_match is None or not checks:
+        return None
+    coarse = [c for c in checks if c <= ctx.schedule[0]]
+    return max(coarse) if coarse else min(checks)
 
 
 def _top(scores: Sequence[float], k: int) -> list[int]:
@@ -302,8 +313,7 @@ def register(
         # follow; 4. the global match unless the agent is sure (``exit_confidence``), then the agent's estimate if
         # it waited behind it (``defer_doubtful``); 5. the rest of the agent's schedule, unless something is
         # confident by then.
-        first_check = min(config.exit_checks, default=None) if ctx.global_match is not None else None
-        agent_from_input_pose(ctx, score_fn, until=first_check)
+        agent_from_input_pose(ctx, score_fn, until=global_match_after(ctx))
         if ctx.global_match is not None and not ctx.sure:
             with timer.stage("global_match"):
                 global_match(ctx)

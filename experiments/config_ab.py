@@ -1,9 +1,12 @@
 """Two service configurations side by side on real-scan pairs: per pair, each one's median milliseconds over
 ``--repeats`` runs (order alternating, every content cache emptied before each run, so each run prepares its
-target as a new request does), right or wrong, status, winning candidate and confidence; then the totals. Backs
-docs/DESIGN.md, "Doubtful candidates wait their turn".
+target as a new request does), right or wrong, status, winning candidate and confidence; then the totals. With
+``--modelnet N``: on pranet-bench's first N unseen-category ModelNet40 pairs per setting instead (its pairs and
+seeds), success by the benchmark's thresholds and the median milliseconds. Backs docs/DESIGN.md, "Doubtful
+candidates wait their turn" and "An exit check halfway through the coarse phase".
 
     python experiments/config_ab.py PAIRS.csv --set defer_doubtful=False [--repeats 3] [--threads 1]
+    python experiments/config_ab.py --modelnet 150 --set "exit_checks=(20,40)"
 
 A is the service default; B is the default with the ``--set`` changes (RegistrationConfig fields, Python literals).
 """
@@ -23,7 +26,9 @@ from pranet.training.bench.scan_pairs import is_right, pose_errors, read_pairs, 
 
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("pairs_csv")
+    p.add_argument("pairs_csv", nargs="?")
+    p.add_argument("--modelnet", type=int, metavar="N", help="ModelNet40 pairs per setting instead of scan pairs")
+    p.add_argument("--settings", default="clean,noisy,partial")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="B's change (repeatable)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=1)
@@ -39,12 +44,46 @@ def empty_caches() -> None:
             obj._last.clear()
 
 
+def modelnet(args: argparse.Namespace, engine: Engine, configs: dict) -> None:
+    """Both configurations on each ModelNet40 pair, interleaved: success and median milliseconds per setting."""
+    import numpy as np
+
+    from pranet.core.metrics import SUCCESS_ROTATION_DEG, SUCCESS_TRANSLATION, isotropic_errors
+    from pranet.training.bench.records import as_float32, pair_seed
+    from pranet.training.data import data_dir, load_modelnet40, test_indices
+    from pranet.training.samples import make_pair, pair_rng
+
+    data = load_modelnet40(data_dir(None), "test")
+    shapes = test_indices(data.labels)[: args.modelnet]
+    for setting in args.settings.split(","):
+        ok, ms = {"A": 0, "B": 0}, {"A": [], "B": []}
+        for i, j in enumerate(shapes):
+            pair = as_float32(make_pair(data.points[j], setting, pair_rng(0, setting, i), 60.0, 0.5))
+            seed = pair_seed(0, setting, i)
+            for k in ("A", "B") if i % 2 == 0 else ("B", "A"):
+                t0 = time.perf_counter()
+                reg = engine.register(pair.source, pair.target, configs[k], np.random.default_rng(seed), seed=seed)
+                ms[k].append(1e3 * (time.perf_counter() - t0))
+                rot, trans = isotropic_errors(reg.T_target_source, pair.T_gt)
+                ok[k] += bool(rot < SUCCESS_ROTATION_DEG and trans < SUCCESS_TRANSLATION)
+        print(
+            f"{setting:8s} "
+            + " | ".join(f"{k}: {ok[k]}/{len(shapes)} right, median {statistics.median(ms[k]):.1f} ms" for k in "AB")
+            + f" | B/A {statistics.median(ms['B']) / statistics.median(ms['A']):.2f}",
+            flush=True,
+        )
+
+
 def main() -> None:
     args = parse_args()
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     configs = {"A": SERVICE_DEFAULT, "B": SERVICE_DEFAULT.with_(**changes)}
     engine = Engine.load(threads=args.threads)
     engine.warm_up()
+    if args.modelnet:
+        print(f"A: the service default; B: {changes}; {args.threads} thread(s)")
+        modelnet(args, engine, configs)
+        return
     medians = {"A": [], "B": []}
     right = {"A": 0, "B": 0}
     print(f"A: the service default; B: {changes}; {args.repeats} runs each, {args.threads} thread(s)")

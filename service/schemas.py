@@ -125,9 +125,9 @@ class RegisterRequest(_Strict):
         list(SERVICE_DEFAULT.exit_checks),
         max_length=16,
         description="with icp: after these many agent steps (cumulative), refine with ICP and return at once if the "
-        "result is 'converged' (most pairs need only the 20 coarse steps); [] = always run every step (the paper's "
-        "PRANet-v2)",
-        examples=[[20, 40], []],
+        "result is 'converged' (most pairs need only 10 coarse steps); with the global match, it runs after the "
+        "last check of the coarse phase unless a check was sure; [] = always run every step (the paper's PRANet-v2)",
+        examples=[[10, 20, 40], []],
     )
     rescue: bool = Field(
         True,

@@ -411,3 +411,37 @@ def test_a_doubtful_agent_estimate_waits_behind_the_global_match_on_dense_clouds
     assert isotropic_errors(waited.T_target_source, T)[0] < 1e-4
 
     refined_first(run([truth], defer=False))
+
+
+def test_an_early_exit_check_ends_the_request_only_when_sure_and_the_global_match_waits_for_the_coarse_phase():
+    """With checks after 10, 20 and 40 steps: a pair within the agent's reach ends at the first check, sure, with
+    no global candidate asked for; a pair beyond it goes on to the end of the coarse phase (20 steps) before the
+    global match is asked, as with checks after 20 and 40 alone."""
+    config = RegistrationConfig(
+        icp_stages=(("point_to_plane", 2.0),), exit_checks=(10, 20, 40), global_match=True, exit_confidence=0.55
+    )
+    for angle, steps_before_global in ((40.0, None), (150.0, 20)):
+        src, tgt, T = rotated_problem(angle)
+        oracle = RangeLimitedOracle(src, tgt, T)
+        asked_after = []
+
+        def candidates(s, t, res, seed, viewpoint, oracle=oracle, asked_after=asked_after):
+            asked_after.append(oracle.calls)  # one scored step per call: the agent's steps so far
+            yield from ()
+
+        truth = unit_truth(src, tgt, T)
+        reg = register(
+            src,
+            tgt,
+            oracle,
+            np.random.default_rng(0),
+            config,
+            icp=snapping_icp(truth, 12.0),
+            global_match_fn=candidates,
+        )
+        if steps_before_global is None:
+            assert asked_after == [] and [step for step, _ in reg.checks] == [10]
+            assert reg.confidence.status == "converged" and len(reg.trajectory) == 10
+        else:
+            assert asked_after == [steps_before_global]
+            assert [step for step, _ in reg.checks][:2] == [10, 20]
