@@ -11,6 +11,7 @@ import pytest
 from pranet.core.actions import DEFAULT_SCHEDULE, build_action_table
 from pranet.core.agent import oracle_score_fn
 from pranet.core.preprocess import check_cloud, fit_normalization
+from pranet.core.registration_config import SERVICE_DEFAULT
 from pranet.engine.engine import Engine
 from pranet.training import evaluate as ev
 from pranet.training.samples import Pair, make_pair, pair_rng
@@ -82,9 +83,10 @@ def test_oracle_agent_through_the_pranet_runner(shapes):
     out = runner.fn(pair, np.random.default_rng(0))
     assert set(out) == {"pranet-v1", "pranet-v2", "pranet-adaptive"}
     assert len(out["pranet-v1"].trajectory) == sum(DEFAULT_SCHEDULE)
-    # The adaptive run stops at its first exit check (ICP converges from the coarse phase) and is as accurate.
+    # The adaptive run stops at its first exit check (ICP converges from there) and is as accurate.
     adaptive = out["pranet-adaptive"]
-    assert len(adaptive.trajectory) == adaptive.extra["checks"][0][0] == DEFAULT_SCHEDULE[0]
+    first_check = SERVICE_DEFAULT.exit_checks[0]
+    assert len(adaptive.trajectory) == adaptive.extra["checks"][0][0] == first_check < DEFAULT_SCHEDULE[0]
     va = ev.evaluate_pair(pair.source, pair.target, pair.clean_source, adaptive.transform, pair.T_gt)
     assert va.rotation_deg < 0.01 and va.translation < 1e-4 and not adaptive.extra["rescued"]
     assert out["pranet-v2"].ms >= out["pranet-v1"].ms  # v2 is timed as agent + ICP
