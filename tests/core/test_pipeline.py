@@ -156,6 +156,39 @@ def test_restarts_around_the_estimate_rescue_a_rotation_beyond_reach():
     np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)
 
 
+
+@pytest.mark.parametrize("n_points", [20000, 300], ids=["dense", "sparse"])
+def test_restarts_are_skipped_on_dense_clouds_after_the_global_match(n_points):
+    """The same unconfident request with a global match that finds nothing: on a sparse cloud the restarts run (a
+    batched call of six starts) and one of them wins; on a dense one they do not (the global match has searched
+    every rotation there), and the wide ICP is what the rescue tries."""
+    _, _, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
+    src = asymmetric_cloud(np.random.default_rng(0), n_points)
+    tgt = src @ T[:3, :3].T + T[:3, 3]
+    icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
+    wide_calls = []
+
+    def wide(s, t, init, res):
+        wide_calls.append(1)
+        return IcpResult(np.asarray(init).copy(), 0.0, 0.0)
+
+    oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
+    config = RegistrationConfig(early_stop=True, rescue_restarts=True, global_match=True)
+    reg = register(
+        src,
+        tgt,
+        oracle,
+        np.random.default_rng(0),
+        config.with_(icp_stages=(("point_to_plane", 2.0),)),
+        icp=icp,
+        rescue_icp=wide,
+        global_match_fn=lambda s, t, res, seed, viewpoint: iter(()),
+    )
+    if n_points < 1000:
+        assert oracle.batch_calls[:1] == [6] and reg.rescued == "restarts" and wide_calls == []
+    else:
+        assert oracle.batch_calls == [] and reg.rescued is None and wide_calls == [1]
+
 def test_timing_stages_are_non_negative_and_add_up_to_the_total():
     """The breakdown pranet-bench reports: with exit checks that do not exit (ICP after 20 and 40 steps, then the
     final ICP) every stage is >= 0 and the stages account for the total."""
