@@ -156,7 +156,6 @@ def test_restarts_around_the_estimate_rescue_a_rotation_beyond_reach():
     np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)
 
 
-
 @pytest.mark.parametrize("n_points", [20000, 300], ids=["dense", "sparse"])
 def test_restarts_are_skipped_on_dense_clouds_after_the_global_match(n_points):
     """The same unconfident request with a global match that finds nothing: on a sparse cloud the restarts run (a
@@ -188,6 +187,7 @@ def test_restarts_are_skipped_on_dense_clouds_after_the_global_match(n_points):
         assert oracle.batch_calls[:1] == [6] and reg.rescued == "restarts" and wide_calls == []
     else:
         assert oracle.batch_calls == [] and reg.rescued is None and wide_calls == [1]
+
 
 def test_timing_stages_are_non_negative_and_add_up_to_the_total():
     """The breakdown pranet-bench reports: with exit checks that do not exit (ICP after 20 and 40 steps, then the
