@@ -20,7 +20,7 @@ LABELS = {
     "pranet-v1": "PRANet-v1 (agent, in-process)",
     "pranet-v2": "PRANet-v2 (agent + ICP, in-process)",
     "pranet-v2-http": "PRANet-v2 over HTTP (client side)",
-    "pranet-adaptive": "PRANet adaptive (v2 + exit checks 20/40 + rescue, in-process)",
+    "pranet-adaptive": "PRANet adaptive (the service's default request, in-process)",
     "pranet-adaptive-http": "PRANet adaptive over HTTP (client side; the service's default)",
     "icp": "Open3D ICP (from identity)",
     "fgr-icp": "FGR + ICP",
