@@ -15,7 +15,7 @@ from pranet.core.confidence import ConfidenceEstimator
 from pranet.core.registration_config import DEFAULT_ICP_STAGES, SERVICE_DEFAULT
 from pranet.core.registration_context import prepare
 from pranet.engine.engine import Engine
-from pranet.engine.global_match import global_match
+from pranet.engine.global_match import global_matches
 from pranet.engine.icp import make_icp
 from pranet.training.bench.scan_pairs import is_right, pose_errors, read_pairs, thresholds_for
 from pranet.training.data import data_dir
@@ -46,7 +46,7 @@ for p in read_pairs(root / "pairs.csv"):
         np.random.default_rng(0),
     )
     cands = {"agent": norm.transform_to_unit(reg.agent_T_target_source)}
-    G = global_match(c.src_unit, c.tgt_unit, c.resolution, 0)
+    G = next(global_matches(c.src_unit, c.tgt_unit, c.resolution, 0, c.viewpoint), None)  # its first candidate
     if G is not None:
         cands["global"] = G
     for name, T0 in cands.items():
