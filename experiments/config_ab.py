@@ -7,6 +7,10 @@ candidates wait their turn" and "An exit check halfway through the coarse phase"
 
     python experiments/config_ab.py PAIRS.csv --set defer_doubtful=False [--repeats 3] [--threads 1]
     python experiments/config_ab.py --modelnet 150 --set "exit_checks=(20,40)"
+    python experiments/config_ab.py PAIRS.csv --dense-tolerance-b 1e-6 --repeats 2
+
+``--dense-tolerance-b``: B's engine refines dense clouds with this ICP tolerance instead of
+``engine.icp.DENSE_TOLERANCE`` (docs/DESIGN.md, "ICP tolerance on dense clouds").
 
 A is the service default; B is the default with the ``--set`` changes (RegistrationConfig fields, Python literals).
 """
@@ -32,6 +36,7 @@ def parse_args():
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="B's change (repeatable)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--dense-tolerance-b", type=float, help="B's ICP tolerance on dense clouds")
     p.add_argument("--skip", default="lidar", help="skip pairs whose id contains this ('' = none)")
     return p.parse_args()
 
@@ -74,19 +79,38 @@ def modelnet(args: argparse.Namespace, engine: Engine, configs: dict) -> None:
         )
 
 
+def engine_b(engine: Engine, dense_tolerance: float | None) -> Engine:
+    """``engine`` itself, or one sharing its model whose ICP uses ``dense_tolerance`` on dense clouds."""
+    if dense_tolerance is None:
+        return engine
+    from pranet.engine import icp
+
+    def factory(stages, window_unit="spacing"):
+        kept, icp.DENSE_TOLERANCE = icp.DENSE_TOLERANCE, dense_tolerance  # read when the criteria are made
+        try:
+            return icp.make_icp(stages, window_unit=window_unit)
+        finally:
+            icp.DENSE_TOLERANCE = kept
+
+    return Engine(engine.scorer, icp_factory=factory)
+
+
 def main() -> None:
     args = parse_args()
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     configs = {"A": SERVICE_DEFAULT, "B": SERVICE_DEFAULT.with_(**changes)}
     engine = Engine.load(threads=args.threads)
-    engine.warm_up()
+    engines = {"A": engine, "B": engine_b(engine, args.dense_tolerance_b)}
+    for e in engines.values():
+        e.warm_up()
     if args.modelnet:
         print(f"A: the service default; B: {changes}; {args.threads} thread(s)")
         modelnet(args, engine, configs)
         return
     medians = {"A": [], "B": []}
     right = {"A": 0, "B": 0}
-    print(f"A: the service default; B: {changes}; {args.repeats} runs each, {args.threads} thread(s)")
+    b_engine = f", dense ICP tolerance {args.dense_tolerance_b:g}" if args.dense_tolerance_b else ""
+    print(f"A: the service default; B: {changes}{b_engine}; {args.repeats} runs each, {args.threads} thread(s)")
     for i, pair in enumerate(read_pairs(args.pairs_csv)):
         if args.skip and args.skip in pair.id:
             continue
@@ -96,7 +120,7 @@ def main() -> None:
             for k in ("A", "B") if (r + i) % 2 == 0 else ("B", "A"):
                 empty_caches()
                 t0 = time.perf_counter()
-                last[k] = engine.register(src, tgt, configs[k])
+                last[k] = engines[k].register(src, tgt, configs[k])
                 ms[k].append(1e3 * (time.perf_counter() - t0))
         line = f"{pair.id[:36]:36s}"
         for k in "AB":
