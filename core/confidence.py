@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pranet.core.nearest import PointIndex, subsample
-from pranet.core.resolution import Resolution
+from pranet.core.resolution import SPARSE_FROM, Resolution
 from pranet.core.se3 import apply_transform, inverse
 
 # The status threshold; the same threshold ends the request at an exit check and decides whether the global match
@@ -38,7 +38,7 @@ DEFAULT_THRESHOLD = 0.40
 # spacing (spacing / the clouds' radius) of SPARSE_FROM to SPARSE_THRESHOLD at SPARSE_AT. Measured: the real scans
 # have 0.0002-0.0074, ModelNet40's 1024-point shapes 0.025-0.076; on ModelNet40 noisy pairs right results score
 # 0.69-0.77 and the agent's wrong ones 0.46-0.57 (docs/DESIGN.md, "A confidence for partial scans").
-SPARSE_FROM, SPARSE_AT, SPARSE_THRESHOLD = 0.01, 0.025, 0.62
+SPARSE_AT, SPARSE_THRESHOLD = 0.025, 0.62
 INLIER_SPACINGS = 1.0  # tau: one spacing
 OVERLAP_SPACINGS = 4.0  # the overlap region: points within one voxel of the other cloud
 MIN_OVERLAP = 0.1  # below this overlap (of the smaller side) the score falls linearly to 0

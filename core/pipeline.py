@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from pranet.core.agent import AgentResult, BatchScoreFn, ScoreFn, batch_from_single, run_agent, run_agent_batch
-from pranet.core.confidence import SPARSE_FROM, ConfidenceEstimator
+from pranet.core.confidence import ConfidenceEstimator
 from pranet.core.registration_config import PAPER_V1, RegistrationConfig
 from pranet.core.registration_context import RegistrationContext, Scorer, prepare
 from pranet.core.registration_types import (
@@ -135,7 +135,7 @@ def agent_from_input_pose(ctx: RegistrationContext, score_fn: ScoreFn, until: in
         extend(agent, part)
         ctx.agent_scheduled = scheduled
         if scheduled in checks and scheduled < total:  # an exit check
-            if until is not None and ctx.config.defer_doubtful:  # before the global match
+            if until is not None:  # before the global match: a doubtful estimate may wait behind it
                 checked = ctx.offer_or_defer(AGENT, agent.transform, agent_index=0, steps=len(agent.steps))
                 if checked is None:
                     continue  # waits for its turn (offer_deferred)
@@ -201,11 +201,8 @@ def global_match(ctx: RegistrationContext) -> None:
     assert ctx.global_match is not None
     c = ctx.clouds
     for T in ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed, c.viewpoint):
-        if ctx.config.defer_doubtful:
-            ctx.offer_or_defer(GLOBAL_MATCH, T)
-            ctx.offer_deferred()
-        else:
-            ctx.offer(GLOBAL_MATCH, T)
+        ctx.offer_or_defer(GLOBAL_MATCH, T)
+        ctx.offer_deferred()  # the waiting ones, best first (none without ``defer_doubtful``)
         if ctx.confident:
             return
 
@@ -243,7 +240,7 @@ def restarts_help(ctx: RegistrationContext) -> bool:
     searched every rotation with features at the data's resolution. There, on 43 real-scan pairs, they never won a
     right answer and won wrong ones (on a LiDAR pair, where every candidate scores 0.12-0.16, one 18° off over the
     right ones), for 0.2-0.5 s each (docs/DESIGN.md, "Restarts on dense scans")."""
-    return ctx.global_match is None or ctx.clouds.resolution.relative_spacing > SPARSE_FROM
+    return ctx.global_match is None or not ctx.clouds.resolution.dense
 
 
 def polish(ctx: RegistrationContext) -> None:

@@ -17,7 +17,7 @@ import numpy.typing as npt
 
 from pranet.core.actions import ActionTable
 from pranet.core.agent import AgentResult, ScoreFn
-from pranet.core.confidence import SPARSE_FROM, Confidence, ConfidenceEstimator
+from pranet.core.confidence import Confidence, ConfidenceEstimator
 from pranet.core.nearest import PointIndex, subsample
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
 from pranet.core.registration_config import RegistrationConfig
@@ -202,13 +202,13 @@ class RegistrationContext:
     ) -> Candidate | None:
         """``offer``, unless the estimate's quick confidence after the ICP gate's iterations is between the gate
         and the status threshold: then the rest of its ICP waits in ``deferred`` for ``offer_deferred`` and
-        ``None`` is returned. Such an estimate is as often wrong as right, and a wrong one takes every iteration of
-        every ICP stage (100-250 ms on an object scan); waiting, it is refined only if a more promising candidate
-        does not settle the request first (docs/DESIGN.md, "Doubtful candidates wait their turn"). Dense clouds
-        only: on sparse ones (ModelNet40's) a wrong estimate's whole ICP costs a few milliseconds, less than the
-        global match that waiting makes it run."""
+        ``None`` is returned (only with ``defer_doubtful``). Such an estimate is as often wrong as right, and a
+        wrong one takes every iteration of every ICP stage (100-250 ms on an object scan); waiting, it is refined
+        only if a more promising candidate does not settle the request first (docs/DESIGN.md, "Doubtful candidates
+        wait their turn"). Dense clouds only: on sparse ones (ModelNet40's) a wrong estimate's whole ICP costs a
+        few milliseconds, less than the global match that waiting makes it run."""
         gate = self.config.icp_gate
-        if self.icp is None or gate is None or self.clouds.resolution.relative_spacing > SPARSE_FROM:
+        if not self.config.defer_doubtful or self.icp is None or gate is None or not self.clouds.resolution.dense:
             return self.offer(name, T_unit, agent_index)
         refined, quick = self.refine(T_unit, 1.0)
         if quick is not None and gate * self.estimator.threshold <= quick < self.estimator.threshold:

@@ -12,7 +12,6 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from pranet.core.confidence import SPARSE_FROM
 from pranet.core.nearest import subsample
 from pranet.core.registration_config import (
     DEFAULT_ICP_STAGES,
@@ -134,7 +133,7 @@ def make_icp(
             T = r.transformation
             if not proceed(np.asarray(T)):
                 return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
-        stage_criteria = dense_criteria if resolution.relative_spacing <= SPARSE_FROM else criteria
+        stage_criteria = dense_criteria if resolution.dense else criteria
         for method, distance in plan:
             r = reg.registration_icp(src, tgt, distance * unit, T, estimations[method], stage_criteria)
             T = r.transformation

@@ -5,17 +5,17 @@ both clouds voxel-downsampled at one voxel (4 spacings), within half a voxel, as
 peer finishes (the peer's first pass, within a whole voxel, adds nothing after Open3D's stages: the same medians,
 a third of the time). On dense range scans of smooth surfaces this is the more precise finish
 (objects of the real-scan pairs, from the truth turned 3°: 0.089° / 0.21 mm against Open3D's stages' 0.10° /
-0.34 mm; docs/DESIGN.md, "The polish"). Only on dense clouds (spacing under ``SPARSE_FROM`` of the target's
-radius, as the confidence counts sparse) whose surface is smooth at its resolution (``Resolution.flatness`` at most
-``POLISH_MAX_FLATNESS``): on ModelNet40's sparse samples a voxel grid of 4 spacings leaves a few dozen points (the
-polish moved an exact clean result 1.5° off) and on noisy RGB-D fragments a voxel's neighbourhood is no plane.
+0.34 mm; docs/DESIGN.md, "The polish"). Only on dense clouds (``Resolution.dense``: spacing under
+``core.resolution.SPARSE_FROM`` of the target's radius, as the confidence counts sparse) whose surface is smooth
+at its resolution (``Resolution.flatness`` at most ``POLISH_MAX_FLATNESS``): on ModelNet40's sparse samples a
+voxel grid of 4 spacings leaves a few dozen points (the polish moved an exact clean result 1.5° off) and on noisy
+RGB-D fragments a voxel's neighbourhood is no plane.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from pranet.core.confidence import SPARSE_FROM
 from pranet.core.registration_types import PolishFn
 from pranet.core.resolution import Resolution
 from pranet.core.se3 import Array
@@ -29,8 +29,8 @@ MAX_ITERATIONS = 20
 
 def polishable(resolution: Resolution) -> bool:
     """Whether the polish finishes registrations at ``resolution``: dense clouds (relative spacing at most
-    ``SPARSE_FROM``) whose surface is smooth at its resolution (flatness at most ``POLISH_MAX_FLATNESS``)."""
-    return resolution.relative_spacing <= SPARSE_FROM and resolution.flatness <= POLISH_MAX_FLATNESS
+    ``Resolution.dense``) whose surface is smooth at its resolution (flatness at most ``POLISH_MAX_FLATNESS``)."""
+    return resolution.dense and resolution.flatness <= POLISH_MAX_FLATNESS
 
 
 def make_polish(threads: int = 1) -> PolishFn:
