@@ -8,9 +8,12 @@ candidates wait their turn" and "An exit check halfway through the coarse phase"
     python experiments/config_ab.py PAIRS.csv --set defer_doubtful=False [--repeats 3] [--threads 1]
     python experiments/config_ab.py --modelnet 150 --set "exit_checks=(20,40)"
     python experiments/config_ab.py PAIRS.csv --dense-tolerance-b 1e-6 --repeats 2
+    python experiments/config_ab.py PAIRS.csv --constant-b icp.TARGET_VOXEL_SPACINGS=4.0
 
 ``--dense-tolerance-b``: B's engine refines dense clouds with this ICP tolerance instead of
-``engine.icp.DENSE_TOLERANCE`` (docs/DESIGN.md, "ICP tolerance on dense clouds").
+``engine.icp.DENSE_TOLERANCE`` (docs/DESIGN.md, "ICP tolerance on dense clouds"). ``--constant-b``: a constant of
+a ``pranet.engine`` module (``MODULE.NAME=VALUE``, a Python literal) set to another value while B warms up and
+registers, and restored after (for constants read when a registration runs).
 
 A is the service default; B is the default with the ``--set`` changes (RegistrationConfig fields, Python literals).
 """
@@ -37,6 +40,7 @@ def parse_args():
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--dense-tolerance-b", type=float, help="B's ICP tolerance on dense clouds")
+    p.add_argument("--constant-b", action="append", default=[], metavar="MODULE.NAME=VALUE", help="B's engine constant")
     p.add_argument("--skip", default="lidar", help="skip pairs whose id contains this ('' = none)")
     return p.parse_args()
 
@@ -49,7 +53,7 @@ def empty_caches() -> None:
             obj._last.clear()
 
 
-def modelnet(args: argparse.Namespace, engine: Engine, configs: dict) -> None:
+def modelnet(args: argparse.Namespace, engines: dict, configs: dict) -> None:
     """Both configurations on each ModelNet40 pair, interleaved: success and median milliseconds per setting."""
     import numpy as np
 
@@ -67,7 +71,7 @@ def modelnet(args: argparse.Namespace, engine: Engine, configs: dict) -> None:
             seed = pair_seed(0, setting, i)
             for k in ("A", "B") if i % 2 == 0 else ("B", "A"):
                 t0 = time.perf_counter()
-                reg = engine.register(pair.source, pair.target, configs[k], np.random.default_rng(seed), seed=seed)
+                reg = engines[k].register(pair.source, pair.target, configs[k], np.random.default_rng(seed), seed=seed)
                 ms[k].append(1e3 * (time.perf_counter() - t0))
                 rot, trans = isotropic_errors(reg.T_target_source, pair.T_gt)
                 ok[k] += bool(rot < SUCCESS_ROTATION_DEG and trans < SUCCESS_TRANSLATION)
@@ -95,21 +99,61 @@ def engine_b(engine: Engine, dense_tolerance: float | None) -> Engine:
     return Engine(engine.scorer, icp_factory=factory)
 
 
+class PatchedEngine:
+    """An engine whose ``warm_up`` and ``register`` run with some ``pranet.engine`` module constants changed."""
+
+    def __init__(self, engine: Engine, constants: dict[tuple[str, str], object]) -> None:
+        self.engine, self.constants = engine, constants
+
+    def _call(self, method: str, *args, **kwargs):
+        import importlib
+
+        kept = {}
+        for (module, name), value in self.constants.items():
+            m = importlib.import_module(f"pranet.engine.{module}")
+            kept[(m, name)] = getattr(m, name)
+            setattr(m, name, value)
+        try:
+            return getattr(self.engine, method)(*args, **kwargs)
+        finally:
+            for (m, name), value in kept.items():
+                setattr(m, name, value)
+
+    def warm_up(self, *args, **kwargs):
+        return self._call("warm_up", *args, **kwargs)
+
+    def register(self, *args, **kwargs):
+        return self._call("register", *args, **kwargs)
+
+
+def parse_constants(items: list[str]) -> dict[tuple[str, str], object]:
+    out = {}
+    for item in items:
+        path, value = item.split("=", 1)
+        module, name = path.rsplit(".", 1)
+        out[(module, name)] = ast.literal_eval(value)
+    return out
+
+
 def main() -> None:
     args = parse_args()
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     configs = {"A": SERVICE_DEFAULT, "B": SERVICE_DEFAULT.with_(**changes)}
     engine = Engine.load(threads=args.threads)
     engines = {"A": engine, "B": engine_b(engine, args.dense_tolerance_b)}
+    constants = parse_constants(args.constant_b)
+    if constants:
+        engines["B"] = PatchedEngine(engines["B"], constants)
     for e in engines.values():
         e.warm_up()
+    b_engine = f", dense ICP tolerance {args.dense_tolerance_b:g}" if args.dense_tolerance_b else ""
+    b_engine += "".join(f", {m}.{n}={v!r}" for (m, n), v in constants.items())
     if args.modelnet:
-        print(f"A: the service default; B: {changes}; {args.threads} thread(s)")
-        modelnet(args, engine, configs)
+        print(f"A: the service default; B: {changes}{b_engine}; {args.threads} thread(s)")
+        modelnet(args, engines, configs)
         return
     medians = {"A": [], "B": []}
     right = {"A": 0, "B": 0}
-    b_engine = f", dense ICP tolerance {args.dense_tolerance_b:g}" if args.dense_tolerance_b else ""
     print(f"A: the service default; B: {changes}{b_engine}; {args.repeats} runs each, {args.threads} thread(s)")
     for i, pair in enumerate(read_pairs(args.pairs_csv)):
         if args.skip and args.skip in pair.id:
@@ -125,11 +169,13 @@ def main() -> None:
         line = f"{pair.id[:36]:36s}"
         for k in "AB":
             reg = last[k]
-            ok = is_right(*pose_errors(reg.T_target_source, pair.T_gt), thresholds_for(pair.kind))
+            errors = pose_errors(reg.T_target_source, pair.T_gt)
+            ok = is_right(*errors, thresholds_for(pair.kind))
             medians[k].append(statistics.median(ms[k]))
             right[k] += ok
             line += (
-                f" | {k} {medians[k][-1]:6.0f} ms {'right' if ok else 'wrong'} {reg.confidence.status:9s} "
+                f" | {k} {medians[k][-1]:6.0f} ms {'right' if ok else 'wrong'} {errors[0]:.3f}° {errors[1]:.2e} "
+                f"{reg.confidence.status:9s} "
                 f"{reg.candidate:12s} {reg.confidence.score:.3f}"
             )
         print(f"{line} | B/A {medians['B'][-1] / medians['A'][-1]:.2f}", flush=True)
