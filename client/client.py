@@ -81,6 +81,7 @@ class RegistrationResult:
     model: dict[str, Any]
     confidence: float | None = None  # in [0, 1]: how tight the clouds' overlap is at their resolution (API docs)
     status: str | None = None  # "converged" | "suspect"
+    matches: int = 0  # feature matches that certified a global match as converged (0: the confidence decided)
     initial_transform: Array | None = None  # (4, 4) the agent's start pose (the identity unless init="global")
     n_source: int | None = None  # points the service received
     n_target: int | None = None
@@ -119,6 +120,7 @@ class RegistrationResult:
             model=dict(body.get("model") or {}),
             confidence=float(confidence) if confidence is not None else None,
             status=body.get("status"),
+            matches=int(body.get("matches") or 0),
             initial_transform=initial,
             n_source=body.get("n_source"),
             n_target=body.get("n_target"),

@@ -195,13 +195,14 @@ def _top(scores: Sequence[float], k: int) -> list[int]:
 
 def global_match(ctx: RegistrationContext) -> None:
     """The classical global candidates: features matched at the data's resolution and a robust solver, from any
-    initial rotation, each refined by the same ICP; cheapest first, and no more once one is confident. Seeded: the
-    same request gives the same answer. Its features see the surface from the input frame's origin
-    (``PreparedClouds.viewpoint``)."""
+    initial rotation, each refined by the same ICP; cheapest first, and no more once one is confident. An answer
+    resting on enough feature matches, which its ICP agreed with, is confident whatever its score
+    (``core.confidence.certify``). Seeded: the same request gives the same answer. Its features see the surface from
+    the input frame's origin (``PreparedClouds.viewpoint``)."""
     assert ctx.global_match is not None
     c = ctx.clouds
-    for T in ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed, c.viewpoint):
-        ctx.offer_or_defer(GLOBAL_MATCH, T)
+    for answer in ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed, c.viewpoint):
+        ctx.offer_or_defer(GLOBAL_MATCH, answer.transform, matches=answer.matches)
         ctx.offer_deferred()  # the waiting ones, best first (none without ``defer_doubtful``)
         if ctx.confident:
             return
@@ -255,7 +256,7 @@ def polish(ctx: RegistrationContext) -> None:
     T = ctx.polish(c.src_unit, c.tgt_unit, best.T_unit, c.resolution)
     if T is None:
         return
-    confidence = ctx.evaluate(T)
+    confidence = ctx.judge(T, best.T_unit, best.confidence.matches)
     if confidence.status == "converged":
         ctx.best = replace(best, confidence=confidence, T_unit=T)
 

@@ -17,13 +17,13 @@ import numpy.typing as npt
 
 from pranet.core.actions import ActionTable
 from pranet.core.agent import AgentResult, ScoreFn
-from pranet.core.confidence import Confidence, ConfidenceEstimator
+from pranet.core.confidence import CERTIFYING_MATCHES, Confidence, ConfidenceEstimator, certify
 from pranet.core.nearest import PointIndex, subsample
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
 from pranet.core.registration_config import RegistrationConfig
 from pranet.core.registration_types import Candidate, Deferred, GlobalMatchFn, IcpFn, IcpResult, PolishFn
 from pranet.core.resolution import Resolution, measure_resolution
-from pranet.core.se3 import Array
+from pranet.core.se3 import Array, apply_transform, rotation_angle
 from pranet.core.stage_timer import StageTimer
 
 # Larger clouds are cut to this many points (fixed seed) before anything else: a 1M-point LiDAR scan then costs
@@ -120,6 +120,7 @@ class RegistrationContext:
     best_agent: Candidate | None = None  # the most confident of the agent's own candidates (its runs, refined)
     tried: dict[str, float] = field(default_factory=dict)  # candidate name -> its best confidence
     deferred: list[Deferred] = field(default_factory=list)  # doubtful candidates waiting, part-refined
+    offered: dict[bytes, Candidate] = field(default_factory=dict)  # estimate (its bytes) -> what it became
     scorers: list[object] = field(default_factory=list)  # the score functions made (their ``calls``, when counted)
 
     @property
@@ -174,20 +175,44 @@ class RegistrationContext:
             result = self.icp(c.src_unit, c.tgt_unit, T_unit, c.resolution, proceed=proceed)
         return result, (quick[-1] if quick else None)
 
+    def judge(self, T_unit: Array, estimate: Array | None = None, matches: int = 0) -> Confidence:
+        """The confidence of ``T_unit``; for a global answer resting on ``matches`` feature matches, refined from
+        ``estimate``, certified by them where they suffice (``core.confidence.certify``)."""
+        confidence = self.evaluate(T_unit)
+        if matches < CERTIFYING_MATCHES or estimate is None:
+            return confidence
+        centroid = self.estimator.source_queries.mean(axis=0, keepdims=True)
+        shift = float(np.linalg.norm(apply_transform(T_unit, centroid) - apply_transform(estimate, centroid)))
+        turn = float(np.degrees(rotation_angle(np.asarray(T_unit)[:3, :3] @ np.asarray(estimate)[:3, :3].T)))
+        resolution = self.clouds.resolution
+        return certify(confidence, matches, shift / resolution.voxel, turn, resolution.dense)
+
     def offer(
-        self, name: str, T_unit: Array, agent_index: int | None = None, refined: IcpResult | None = None
+        self,
+        name: str,
+        T_unit: Array,
+        agent_index: int | None = None,
+        refined: IcpResult | None = None,
+        matches: int = 0,
     ) -> Candidate:
         """Refine ``T_unit`` (when ICP is on, and unless ``refined`` already is its refinement), score it, and keep
         it if it beats ``best``. With ``icp_guard``, a refinement that scores below the estimate it started from is
         dropped: point-to-plane ICP on a sparse partial shape can slide along a flat part, or solve a degenerate
-        system, and end far off (docs/DESIGN.md, "When ICP makes it worse")."""
+        system, and end far off (docs/DESIGN.md, "When ICP makes it worse"). ``matches``: a global answer's feature
+        matches, which may certify it (``judge``).
+
+        An estimate offered before is not refined and scored again: an agent that stopped early reaches its next
+        exit check where it stood at the last one (on an RGB-D fragment that was 350 ms of ICP spent twice)."""
+        key = np.ascontiguousarray(T_unit, dtype=np.float64).tobytes()
+        if refined is None and key in self.offered:
+            return self.offered[key]
         if refined is None and self.icp is not None:
             refined, _ = self.refine(T_unit, self.config.icp_gate)
         T = refined.transform if refined is not None else T_unit
-        confidence = self.evaluate(T)
+        confidence = self.judge(T, T_unit, matches)
         if refined is not None and self.config.icp_guard:
-            unrefined = self.evaluate(T_unit)
-            if unrefined.score > confidence.score:
+            unrefined = self.evaluate(T_unit)  # the matches certify the answer ICP agreed with, not the raw one
+            if Candidate(unrefined, name, T_unit, None).beats(Candidate(confidence, name, T, refined)):
                 T, refined, confidence = T_unit, None, unrefined
         candidate = Candidate(confidence, name, T, refined, agent_index)
         self.tried[name] = max(self.tried.get(name, 0.0), candidate.confidence.score)
@@ -195,10 +220,11 @@ class RegistrationContext:
             self.best = candidate
         if agent_index is not None and candidate.beats(self.best_agent):
             self.best_agent = candidate
+        self.offered[key] = candidate
         return candidate
 
     def offer_or_defer(
-        self, name: str, T_unit: Array, agent_index: int | None = None, steps: int | None = None
+        self, name: str, T_unit: Array, agent_index: int | None = None, steps: int | None = None, matches: int = 0
     ) -> Candidate | None:
         """``offer``, unless the estimate's quick confidence after the ICP gate's iterations is between the gate
         and the status threshold: then the rest of its ICP waits in ``deferred`` for ``offer_deferred`` and
@@ -208,13 +234,19 @@ class RegistrationContext:
         wait their turn"). Dense clouds only: on sparse ones (ModelNet40's) a wrong estimate's whole ICP costs a
         few milliseconds, less than the global match that waiting makes it run."""
         gate = self.config.icp_gate
+        key = np.ascontiguousarray(T_unit, dtype=np.float64).tobytes()
+        if key in self.offered:
+            return self.offered[key]
+        if any(np.array_equal(d.T_unit, T_unit) for d in self.deferred):
+            return None  # already waiting
         if not self.config.defer_doubtful or self.icp is None or gate is None or not self.clouds.resolution.dense:
-            return self.offer(name, T_unit, agent_index)
+            return self.offer(name, T_unit, agent_index, matches=matches)
         refined, quick = self.refine(T_unit, 1.0)
         if quick is not None and gate * self.estimator.threshold <= quick < self.estimator.threshold:
-            self.deferred.append(Deferred(name, T_unit, refined.transform, quick, agent_index, steps))
+            self.deferred.append(Deferred(name, T_unit, refined.transform, quick, agent_index, steps, matches))
             return None
-        return self.offer(name, T_unit, agent_index, refined=refined)  # promising, or hopeless as the gate left it
+        # promising, or hopeless as the gate left it
+        return self.offer(name, T_unit, agent_index, refined=refined, matches=matches)
 
     def offer_deferred(self) -> None:
         """The waiting candidates, the best quick confidence first, each refined from where the gate left it (as a
@@ -226,7 +258,7 @@ class RegistrationContext:
             if self.sure:
                 return
             refined, _ = self.refine(d.part_refined, None)
-            checked = self.offer(d.name, d.T_unit, d.agent_index, refined=refined)
+            checked = self.offer(d.name, d.T_unit, d.agent_index, refined=refined, matches=d.matches)
             if d.steps is not None:
                 self.checks.append((d.steps, checked.confidence.score))
 

@@ -51,10 +51,20 @@ class IcpFn(Protocol):
     ) -> IcpResult: ...
 
 
+@dataclass(frozen=True)
+class GlobalAnswer:
+    """One answer of the global match."""
+
+    transform: Array  # (4, 4) T_target_source, unit frame
+    # The mutually consistent feature matches it rests on (KISS-Matcher's final inliers); 0: not counted (RANSAC's
+    # inlier count is of another kind). Enough of them make the answer ``converged`` (``core.confidence.certify``).
+    matches: int = 0
+
+
 # global_match(source_unit (N, 3), target_unit (M, 3), resolution (unit frame), seed, viewpoint (3,): the input
-# frame's origin in the unit frame, where the sensor was) -> candidates T_target_source (4, 4) from any initial
-# pose, cheapest first, each computed when asked for (none when it finds no answer).
-GlobalMatchFn = Callable[[Array, Array, Resolution, int, Array], Iterable[Array]]
+# frame's origin in the unit frame, where the sensor was) -> answers from any initial pose, cheapest first, each
+# computed when asked for (none when it finds no answer).
+GlobalMatchFn = Callable[[Array, Array, Resolution, int, Array], Iterable[GlobalAnswer]]
 # polish(source_unit, target_unit, T_target_source (4, 4), resolution) -> a finer T_target_source, or None where
 # the data does not suit it: the last refinement of the winning candidate only.
 PolishFn = Callable[[Array, Array, Array, Resolution], "Array | None"]
@@ -71,7 +81,12 @@ class Candidate:
     agent_index: int | None = None  # which agent run it came from; None for the classical candidates
 
     def beats(self, other: Candidate | None) -> bool:
-        return other is None or self.confidence.score > other.confidence.score
+        """Whether this candidate ranks above ``other``: ``converged`` above ``suspect``, then the higher score (the
+        status follows the score except where a global match's feature matches certify it)."""
+        if other is None:
+            return True
+        mine, theirs = self.confidence, other.confidence
+        return (mine.status == "converged", mine.score) > (theirs.status == "converged", theirs.score)
 
 
 @dataclass(frozen=True)
@@ -84,6 +99,7 @@ class Deferred:
     quick: float  # its quick confidence there: the waiting ones are refined best first
     agent_index: int | None = None
     steps: int | None = None  # an agent estimate's steps at its exit check
+    matches: int = 0  # a global answer's feature matches (``GlobalAnswer.matches``)
 
 
 @dataclass

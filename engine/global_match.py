@@ -24,6 +24,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from pranet.core.nearest import subsample
+from pranet.core.registration_types import GlobalAnswer
 from pranet.core.resolution import FEATURE_VOXELS, NORMAL_MAX_NN, Resolution
 from pranet.core.se3 import Array, make_transform
 
@@ -36,6 +37,9 @@ SCALED_VOXEL = 1.0
 # only when the coarse answer, refined, is not confident (docs/DESIGN.md, "The global match: where it looks from,
 # on which grid, and when RANSAC follows").
 KISS_GRIDS = (2.0, 1.0)
+# KISS-Matcher's input is first averaged on a grid of this many of its voxels (None: the points as given). Its own
+# voxel grid, normals and features then see a few thousand points, not every point of a dense scan.
+KISS_INPUT_GRID: float | None = None
 MIN_FINAL_INLIERS = 3  # fewer translation inliers: no answer (three matches fix a rigid motion)
 # An answer resting on fewer matches is still offered, but RANSAC (another algorithm, other failures) follows it when
 # it is not confident: on the 36 real-scan pairs right answers rest on 16-650 matches and wrong ones on 0-6, as did a
@@ -75,10 +79,11 @@ def enough_voxels(source: Array, target: Array, voxel: float) -> bool:
 
 def global_matches(
     source: Array, target: Array, resolution: Resolution, seed: int = 0, viewpoint: Array | None = None
-) -> Iterator[Array]:
-    """Candidates ``T_target_source`` (4, 4) of ``source: (N, 3)`` onto ``target: (M, 3)`` from any initial pose,
-    cheapest first, each computed when asked for: KISS-Matcher's on each of ``KISS_GRIDS``, then RANSAC's unless
-    KISS-Matcher's answer on the finest grid rests on ``TRUSTED_INLIERS`` matches or more. None at all where the
+) -> Iterator[GlobalAnswer]:
+    """Answers (``T_target_source`` (4, 4) and the matches it rests on) of ``source: (N, 3)`` onto
+    ``target: (M, 3)`` from any initial pose, cheapest first, each computed when asked for: KISS-Matcher's on each
+    of ``KISS_GRIDS``, then RANSAC's unless KISS-Matcher's answer on the finest grid rests on ``TRUSTED_INLIERS``
+    matches or more. None at all where the
     clouds cover fewer than ``MIN_VOXELS`` voxels. ``viewpoint`` (3,): where the sensor was, in the clouds' frame
     (``None``: their origin)."""
     if not enough_voxels(source, target, resolution.voxel):
@@ -87,11 +92,11 @@ def global_matches(
     for grid in KISS_GRIDS:
         T, inliers = kiss_matcher_match(source, target, resolution, seed, viewpoint, grid)
         if T is not None:
-            yield T
+            yield GlobalAnswer(T, inliers)
     if inliers < TRUSTED_INLIERS:
         T = ransac_global_match(source, target, resolution, seed)
         if T is not None:
-            yield T
+            yield GlobalAnswer(T)
 
 
 def kiss_matcher_global_match(
@@ -123,8 +128,8 @@ def kiss_matcher_match(
     scale = SCALED_VOXEL / voxel
     config = kiss_matcher.KISSMatcherConfig(SCALED_VOXEL, fpfh_r_gain=FEATURE_VOXELS)
     matcher = kiss_matcher.KISSMatcher(config)
-    src = ((subsample(source, MAX_POINTS, seed=seed) - origin) * scale).astype(np.float32)
-    tgt = ((subsample(target, MAX_POINTS, seed=seed + 1) - origin) * scale).astype(np.float32)
+    src = _kiss_input((subsample(source, MAX_POINTS, seed=seed) - origin) * scale)
+    tgt = _kiss_input((subsample(target, MAX_POINTS, seed=seed + 1) - origin) * scale)
     solution = matcher.estimate(src, tgt)
     inliers = int(matcher.get_num_final_inliers()) if solution.valid else 0
     if inliers < MIN_FINAL_INLIERS:
@@ -133,6 +138,16 @@ def kiss_matcher_match(
     R = np.asarray(solution.rotation, dtype=np.float64)
     t = np.asarray(solution.translation, dtype=np.float64).ravel() / scale
     return make_transform(R, t + origin - R @ origin), inliers
+
+
+def _kiss_input(points: Array):  # -> (K, 3) float32
+    """``points: (N, 3)`` in KISS-Matcher's scaled frame (its voxel is 1), averaged on a grid of
+    ``KISS_INPUT_GRID`` when set."""
+    if KISS_INPUT_GRID is not None:
+        from pranet.engine.icp import to_o3d
+
+        points = np.asarray(to_o3d(points).voxel_down_sample(KISS_INPUT_GRID).points)
+    return np.asarray(points, dtype=np.float32)
 
 
 def ransac_global_match(source: Array, target: Array, resolution: Resolution, seed: int = 0) -> Array | None:

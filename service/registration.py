@@ -214,6 +214,7 @@ def build_response(
         n_target=result.n_target,
         confidence=confidence.score,
         status=confidence.status,
+        matches=confidence.matches,
         initial_transform=_matrix(result.initial_transform),
         exit_checks=[ExitCheck(step=step, confidence=score) for step, score in result.checks],
         rescued=result.rescued,

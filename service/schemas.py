@@ -10,6 +10,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag
 
+from pranet.core.confidence import CERTIFYING_MATCHES
 from pranet.core.registration_config import SERVICE_DEFAULT
 from pranet.core.registration_types import CandidateName
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
@@ -209,7 +210,16 @@ class RegisterResponse(BaseModel):
         "partial overlap",
     )
     status: Literal["converged", "suspect"] = Field(
-        description="'converged' when confidence reaches the calibrated threshold, else 'suspect' (check the result)"
+        description="'converged' when confidence reaches the calibrated threshold, or when the result is a global "
+        f"match resting on at least {CERTIFYING_MATCHES} mutually consistent feature matches (see matches) that its "
+        "ICP refinement kept; else 'suspect' (check the result)"
+    )
+    matches: int = Field(
+        0,
+        ge=0,
+        description="the feature matches that certify a global match's result as 'converged' whatever its "
+        "confidence (dense scans where the overlap's tightness cannot judge, such as ring LiDAR); 0: the status "
+        "follows the confidence",
     )
     initial_transform: Matrix4 = Field(
         description="the agent's start pose, T_target_source in input units: the identity, or with init='global' "

@@ -218,6 +218,7 @@ def test_the_client_result_has_every_field_of_the_response_schema() -> None:
         "n_target": 12,
         "confidence": 0.9,
         "status": "converged",
+        "matches": 40,
         "initial_transform": np.eye(4).tolist(),
         "exit_checks": [{"step": 20, "confidence": 0.9}],
         "rescued": "restarts",

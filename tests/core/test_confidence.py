@@ -186,3 +186,26 @@ def test_sparse_clouds_need_a_higher_score_to_be_converged():
     e_dense = ConfidenceEstimator(dense, dense, measure_resolution(dense, dense))
     e_sparse = ConfidenceEstimator(sparse, sparse, measure_resolution(sparse, sparse))
     assert e_dense.threshold == DEFAULT_THRESHOLD and e_sparse.threshold == SPARSE_THRESHOLD
+
+
+def test_enough_feature_matches_that_icp_kept_certify_a_global_answer():
+    """``certify``: a global answer resting on ``CERTIFYING_MATCHES`` matches, which its refinement moved by at most
+    ``CERTIFIED_SHIFT_VOXELS`` and ``CERTIFIED_TURN_DEG``, is ``converged`` whatever its score, on dense clouds; one
+    match fewer, a larger move, or sparse clouds leave the status to the score."""
+    from dataclasses import replace
+
+    from pranet.core.confidence import CERTIFIED_SHIFT_VOXELS, CERTIFIED_TURN_DEG, CERTIFYING_MATCHES, certify
+
+    rng = np.random.default_rng(0)
+    p = _shape(rng, 3000)
+    low = replace(estimate_confidence(p, p, np.eye(4)), score=0.1, status="suspect")
+    n = CERTIFYING_MATCHES
+    sure = certify(low, n, CERTIFIED_SHIFT_VOXELS, CERTIFIED_TURN_DEG, dense=True)
+    assert sure.status == "converged" and sure.matches == n and sure.score == 0.1
+    for args in (
+        (n - 1, 0.0, 0.0, True),
+        (n, 1.01 * CERTIFIED_SHIFT_VOXELS, 0.0, True),
+        (n, 0.0, 1.01 * CERTIFIED_TURN_DEG, True),
+        (10 * n, 0.0, 0.0, False),
+    ):
+        assert certify(low, *args) == low, args

@@ -17,7 +17,7 @@ from pranet.core.metrics import isotropic_errors
 from pranet.core.pipeline import STAGES, register
 from pranet.core.registration_config import RegistrationConfig
 from pranet.core.registration_context import RANK_QUERIES, prepare
-from pranet.core.registration_types import IcpResult
+from pranet.core.registration_types import GlobalAnswer, IcpResult
 from pranet.core.starts import geodesic_distances, start_rotations
 
 
@@ -324,7 +324,7 @@ def test_global_candidates_are_asked_for_cheapest_first_until_one_is_confident()
     def candidates(s, t, res, seed, viewpoint):
         for name, T_unit in (("coarse", wrong), ("fine", truth), ("ransac", wrong)):
             asked.append(name)
-            yield T_unit.copy()
+            yield GlobalAnswer(T_unit.copy())
 
     config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), global_match=True)
     icp = snapping_icp(truth, 5.0)  # refines only what is already within 5° of the truth
@@ -352,7 +352,7 @@ def test_an_agent_exit_short_of_sure_gets_the_global_match_as_a_rival():
 
     def candidates(s, t, res, seed, viewpoint):
         asked.append(seed)
-        yield truth.copy()
+        yield GlobalAnswer(truth.copy())
 
     def run(bar):
         config = RegistrationConfig(
@@ -421,7 +421,7 @@ def test_a_doubtful_agent_estimate_waits_behind_the_global_match_on_dense_clouds
             np.random.default_rng(0),
             config.with_(defer_doubtful=defer),
             icp=icp,
-            global_match_fn=lambda s, t, res, seed, viewpoint: iter([c.copy() for c in candidates]),
+            global_match_fn=lambda s, t, res, seed, viewpoint: iter([GlobalAnswer(c.copy()) for c in candidates]),
         )
 
     def refined_from_doubtful():
@@ -478,3 +478,49 @@ def test_an_early_exit_check_ends_the_request_only_when_sure_and_the_global_matc
         else:
             assert asked_after == [steps_before_global]
             assert [step for step, _ in reg.checks][:2] == [10, 20]
+
+
+@pytest.mark.parametrize("n_points", [20000, 300], ids=["dense", "sparse"])
+def test_a_global_answer_on_enough_matches_that_icp_kept_is_converged_whatever_its_score(n_points):
+    """On ring LiDAR every answer is loose at the data's spacing, the right one too: a global answer resting on
+    enough feature matches (``core.confidence.CERTIFYING_MATCHES``) that ICP kept within a voxel wins ``converged``
+    over a tighter but ``suspect`` candidate, with its own score. One match fewer, or an ICP that takes it away
+    (3 voxels), leaves it ``suspect``; so do sparse clouds, where the certificate was never measured."""
+    from pranet.core.confidence import CERTIFYING_MATCHES
+
+    src, tgt, T = _problem(n_points)
+    truth = unit_truth(src, tgt, T)
+    clouds = prepare(src, tgt, 256, np.random.default_rng(0))
+    estimator = ConfidenceEstimator(clouds.src_index, clouds.tgt_index, clouds.resolution)
+    loose = truth.copy()
+    loose[0, 3] += 1.5 * clouds.resolution.spacing  # suspect by its score
+    assert estimator.evaluate(loose).status == "suspect"
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_euler("z", 150.0, degrees=True).as_matrix()
+
+    def run(matches, moved_voxels=0.0):
+        def icp(s, t, init, res=None, proceed=None):
+            out = init.copy()
+            out[1, 3] += moved_voxels * clouds.resolution.voxel
+            return IcpResult(out, 1.0, 0.0)
+
+        config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), global_match=True)
+        return register(
+            src,
+            tgt,
+            RangeLimitedOracle(src, tgt, T @ turned),  # the agent walks to a wrong pose
+            np.random.default_rng(0),
+            config,
+            icp=icp,
+            global_match_fn=lambda s, t, res, seed, viewpoint: iter([GlobalAnswer(loose.copy(), matches)]),
+        )
+
+    certified = run(CERTIFYING_MATCHES)
+    if n_points < 1000:
+        assert certified.confidence.status == "suspect" and certified.confidence.matches == 0
+        return
+    assert certified.candidate == "global_match" and certified.confidence.status == "converged"
+    assert certified.confidence.matches == CERTIFYING_MATCHES
+    assert certified.confidence.score < estimator.threshold
+    for short in (run(CERTIFYING_MATCHES - 1), run(CERTIFYING_MATCHES, moved_voxels=3.0)):
+        assert short.confidence.status == "suspect" and short.confidence.matches == 0

@@ -21,8 +21,9 @@ from pranet.engine.global_match import (  # noqa: E402
 
 
 def first_global_match(*args):
-    """The first (cheapest) candidate of ``global_matches``, or None."""
-    return next(iter(global_matches(*args)), None)
+    """The first (cheapest) answer of ``global_matches`` (its transform), or None."""
+    answer = next(iter(global_matches(*args)), None)
+    return None if answer is None else answer.transform
 
 
 def turned_pair(angle_deg: float, n: int = 4000, seed: int = 0):
@@ -79,8 +80,8 @@ def test_candidates_come_coarse_grid_first_and_only_when_asked_for(monkeypatch):
     candidates = global_matches(source, target, resolution, 0, None)
     assert calls == []
     coarse = next(candidates)
-    assert calls == [("kiss", 2.0)]
-    rot, trans = isotropic_errors(coarse, T)
+    assert calls == [("kiss", 2.0)] and coarse.matches > 0  # KISS-Matcher's answers say what they rest on
+    rot, trans = isotropic_errors(coarse.transform, T)
     assert rot < 10.0 and trans < 0.1, (rot, trans)
     assert next(candidates) is not None and calls == [("kiss", 2.0), ("kiss", 1.0)]
     assert kiss(source, target, resolution, 0, None, 1.0)[1] >= gm.TRUSTED_INLIERS
