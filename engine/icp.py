@@ -4,7 +4,7 @@ The stages are data of ``core.registration_config``; ``pranet.engine.Engine`` ma
 Every scale comes from the data's resolution (``core.resolution``), passed in with each call: the windows are
 multiples of its spacing (or, for the rescue's wide ICP, fractions of the unit sphere), the target is
 voxel-downsampled at one voxel when large, and its normals come from its neighbours within the resolution's
-normal radius."""
+normal radius (on that grid, where the surface is smooth, within 4 of its cells: ``icp_target``)."""
 
 from __future__ import annotations
 
@@ -36,11 +36,19 @@ WINDOW_UNITS = ("spacing", "extent")  # ICP windows in spacings of the data, or 
 # Larger targets are voxel-downsampled at one voxel (4 spacings) before ICP: their normals cost a third (12 against
 # 40 ms on a bunny scan, 80 against 300 on a 270k-point RGB-D fragment) and each stage less. The stages mostly rank
 # candidates, and the winner of a smooth scan is finished by the polish: the same right and wrong answers on 44
-# real-scan pairs, objects as precise to 0.001°, requests 0.6-0.9x as long. The cost: the RGB-D fragments' errors
-# moved both ways (0.30-0.92° before, 0.45-0.95° after), the LiDAR pair's grew (0.2° / 2.8 cm to 0.7° / 4.8 cm,
-# KISS-Matcher + GICP's 1.1° / 4.3 cm) (docs/DESIGN.md, "The ICP's target on one voxel").
+# real-scan pairs, objects as precise to 0.001°, requests 0.6-0.9x as long; the RGB-D fragments' errors moved both
+# ways (0.30-0.92° before, 0.45-0.95° after); the LiDAR pair's normals need a wider radius on it (below)
+# (docs/DESIGN.md, "The ICP's target on one voxel").
 TARGET_VOXEL_SPACINGS = 4.0
 MAX_POINTS_BEFORE_VOXEL = 20000
+# On that grid, where the surface is smooth at its resolution (``Resolution.flatness`` at most
+# ``POINT_TO_POINT_FROM_FLATNESS``), normals come from the neighbours within this many of its cells (16 spacings; at
+# most ``NORMAL_MAX_NN``), as the 2-spacing grid's 8 spacings spanned 4 of its cells. On a ring LiDAR scan 8 spacings
+# hold a few points of one ring, a line with no normal: the LiDAR pair's ICP ended 0.71° / 4.8 cm off on that radius,
+# 0.18° / 2.8 cm on this one (the peers: 0.22-0.25° / 2.4-3.3 cm), and the object scans did not move. Noisy surfaces
+# (RGB-D fragments) keep the 8 spacings: with 16, ICP slid a cut kitchen fragment 8° along its walls to a pose
+# that scored 0.58, `converged` and wrong (docs/DESIGN.md, "The ICP's target on one voxel").
+TARGET_NORMAL_CELLS = 4.0
 # ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed random
 # subset is faster on large scans and no less accurate than a voxel grid (docs/DESIGN.md, "ICP on real scans").
 MAX_SOURCE_POINTS = 2000
@@ -66,6 +74,23 @@ def to_o3d(points: Array):  # -> open3d.geometry.PointCloud
     pc = o3d.geometry.PointCloud()
     pc.points = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
     return pc
+
+
+def icp_target(target: Array, resolution: Resolution, normals: bool = True):  # -> open3d.geometry.PointCloud
+    """``target: (M, 3)`` as ICP aligns to it: on a grid of one voxel when over ``MAX_POINTS_BEFORE_VOXEL`` points,
+    with normals (when ``normals``) from its neighbours within the resolution's normal radius, or, on that grid where
+    the surface is smooth, within ``TARGET_NORMAL_CELLS`` of its cells."""
+    import open3d as o3d
+
+    cloud, radius = to_o3d(target), resolution.normal_radius
+    if len(target) > MAX_POINTS_BEFORE_VOXEL:
+        cell = TARGET_VOXEL_SPACINGS * resolution.spacing
+        cloud = cloud.voxel_down_sample(cell)
+        if resolution.flatness <= POINT_TO_POINT_FROM_FLATNESS:
+            radius = TARGET_NORMAL_CELLS * cell
+    if normals:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=NORMAL_MAX_NN))
+    return cloud
 
 
 def make_icp(
@@ -102,16 +127,7 @@ def make_icp(
     targets: LastByContent[object] = LastByContent()  # open3d clouds
 
     def prepared_target(target: Array, resolution: Resolution):  # -> open3d.geometry.PointCloud
-        def make(t: Array):
-            tgt = to_o3d(t)
-            if len(t) > MAX_POINTS_BEFORE_VOXEL:
-                tgt = tgt.voxel_down_sample(TARGET_VOXEL_SPACINGS * resolution.spacing)
-            if needs_normals:
-                search = o3d.geometry.KDTreeSearchParamHybrid(radius=resolution.normal_radius, max_nn=NORMAL_MAX_NN)
-                tgt.estimate_normals(search)
-            return tgt
-
-        return targets.get(target, resolution.spacing, make)
+        return targets.get(target, resolution.spacing, lambda t: icp_target(t, resolution, needs_normals))
 
     def stages_for(resolution: Resolution) -> tuple[IcpStage, ...]:
         smooth = resolution.flatness <= POINT_TO_POINT_FROM_FLATNESS

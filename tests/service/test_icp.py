@@ -247,3 +247,37 @@ def test_where_the_polish_finishes_half_the_source_points_rank_the_candidates():
             assert success(result.transform, T)
     finally:
         o3d.pipelines.registration.registration_icp = original
+
+
+def test_on_a_ring_sampled_plane_the_icp_target_normals_span_the_rings(monkeypatch):
+    """A spinning LiDAR samples the ground on rings: dense along each ring, rings far apart. On the one-voxel grid of
+    a large smooth target the normals come from ``TARGET_NORMAL_CELLS`` cells around each point, which reach the
+    next ring, so they are the plane's; within the raw scan's normal radius (2 voxels) most neighbourhoods are a
+    piece of one ring, a line whose normal is any direction across it. A rough surface keeps that radius."""
+    from dataclasses import replace
+
+    from pranet.engine import icp as icp_module
+    from pranet.engine.icp import icp_target
+
+    spacing = 0.01
+    radii = np.arange(1.0, 4.0, 0.12)  # rings 12 spacings apart: beyond 2 voxels (8 spacings), within 4 cells (16)
+    rings = []
+    for r in radii:
+        a = np.arange(0.0, 2 * np.pi, spacing / r)
+        rings.append(np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], axis=1))
+    rng = np.random.default_rng(0)
+    flat = np.concatenate(rings)
+    flat += rng.normal(0.0, 0.2 * spacing, flat.shape)  # sensor noise: more than an arc's few cm bend off its chord
+    plane = flat @ Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix().T  # tilted: not the axes
+    normal = Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix()[:, 2]
+    assert len(plane) > icp_module.MAX_POINTS_BEFORE_VOXEL
+    smooth = Resolution(spacing, flatness=0.0)
+
+    def on_plane(resolution) -> float:
+        normals = np.asarray(icp_target(plane, resolution).normals)
+        return float(np.mean(np.abs(normals @ normal) > 0.99))
+
+    assert on_plane(smooth) > 0.95
+    assert on_plane(replace(smooth, flatness=0.5)) < 0.5  # a rough surface keeps the 2-voxel radius
+    monkeypatch.setattr(icp_module, "TARGET_NORMAL_CELLS", 2.0)
+    assert on_plane(smooth) < 0.5
