@@ -32,6 +32,11 @@ FLATNESS_NEIGHBOURS = 16
 # candidates, the looser ICP tolerance and no restarts after the global match; above it the status threshold starts
 # to rise (``core.confidence``).
 SPARSE_FROM = 0.01
+# Surfaces whose flatness (``flatness``) is at most this are smooth at their resolution: dense range scans of objects
+# and outdoor LiDAR (about 0.1 and less), not ModelNet40's samples (0.3-0.9) or RGB-D fragments (about 0.5). There a
+# point's normal describes the surface: ICP finishes point-to-plane, the polish runs, the ICP target's normals may
+# come from further off (``engine.icp``, ``engine.polish``; docs/DESIGN.md, "ICP at the data's resolution").
+SMOOTH_UP_TO = 0.25
 
 
 def median_spacing(points: npt.ArrayLike | PointIndex, probes: int = SPACING_PROBES, seed: int = 0) -> float:
@@ -91,6 +96,11 @@ class Resolution:
     def dense(self) -> bool:
         """Whether the clouds are densely sampled (``relative_spacing`` at most ``SPARSE_FROM``)."""
         return self.relative_spacing <= SPARSE_FROM
+
+    @property
+    def smooth(self) -> bool:
+        """Whether the surface is smooth at its resolution (``flatness`` at most ``SMOOTH_UP_TO``)."""
+        return self.flatness <= SMOOTH_UP_TO
 
     @property
     def voxel(self) -> float:

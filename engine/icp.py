@@ -26,12 +26,11 @@ from pranet.core.se3 import Array
 from pranet.engine.content_cache import LastByContent
 from pranet.engine.polish import polishable
 
-# Point-to-point stages finish the refinement only where the surface is not planar at the data's resolution
-# (``Resolution.flatness`` above this): on ModelNet40's sparse samples a point-to-plane finish cut the service
-# default's success from 100 to 86 % (noisy) and 53 to 23 % (partial), while on dense range scans point-to-point's
-# pull towards the nearest samples cost precision (bun000 -> bun045: 0.067° after point-to-plane at 2 spacings,
-# 0.107° after the point-to-point finish): docs/DESIGN.md, "ICP at the data's resolution".
-POINT_TO_POINT_FROM_FLATNESS = 0.25
+# Point-to-point stages finish the refinement only where the surface is not smooth at the data's resolution
+# (``Resolution.smooth``): on ModelNet40's sparse samples a point-to-plane finish cut the service default's success
+# from 100 to 86 % (noisy) and 53 to 23 % (partial), while on dense range scans point-to-point's pull towards the
+# nearest samples cost precision (bun000 -> bun045: 0.067° after point-to-plane at 2 spacings, 0.107° after the
+# point-to-point finish): docs/DESIGN.md, "ICP at the data's resolution".
 WINDOW_UNITS = ("spacing", "extent")  # ICP windows in spacings of the data, or in the unit frame (the extent)
 # Larger targets are voxel-downsampled at one voxel (4 spacings) before ICP: their normals cost a third (12 against
 # 40 ms on a bunny scan, 80 against 300 on a 270k-point RGB-D fragment) and each stage less. The stages mostly rank
@@ -41,13 +40,13 @@ WINDOW_UNITS = ("spacing", "extent")  # ICP windows in spacings of the data, or 
 # (docs/DESIGN.md, "The ICP's target on one voxel").
 TARGET_VOXEL_SPACINGS = 4.0
 MAX_POINTS_BEFORE_VOXEL = 20000
-# On that grid, where the surface is smooth at its resolution (``Resolution.flatness`` at most
-# ``POINT_TO_POINT_FROM_FLATNESS``), normals come from the neighbours within this many of its cells (16 spacings; at
-# most ``NORMAL_MAX_NN``), as the 2-spacing grid's 8 spacings spanned 4 of its cells. On a ring LiDAR scan 8 spacings
-# hold a few points of one ring, a line with no normal: the LiDAR pair's ICP ended 0.71° / 4.8 cm off on that radius,
-# 0.18° / 2.8 cm on this one (the peers: 0.22-0.25° / 2.4-3.3 cm), and the object scans did not move. Noisy surfaces
-# (RGB-D fragments) keep the 8 spacings: with 16, ICP slid a cut kitchen fragment 8° along its walls to a pose
-# that scored 0.58, `converged` and wrong (docs/DESIGN.md, "The ICP's target on one voxel").
+# On that grid, where the surface is smooth at its resolution (``Resolution.smooth``), normals come from the
+# neighbours within this many of its cells (16 spacings; at most ``NORMAL_MAX_NN``), as the 2-spacing grid's 8
+# spacings spanned 4 of its cells. On a ring LiDAR scan 8 spacings hold a few points of one ring, a line with no
+# normal: the LiDAR pair's ICP ended 0.71° / 4.8 cm off on that radius, 0.18° / 2.8 cm on this one (the peers:
+# 0.22-0.25° / 2.4-3.3 cm), and the object scans did not move. Noisy surfaces (RGB-D fragments) keep the 8 spacings:
+# with 16, ICP slid a cut kitchen fragment 8° along its walls to a pose that scored 0.58, `converged` and wrong
+# (docs/DESIGN.md, "The ICP's target on one voxel").
 TARGET_NORMAL_CELLS = 4.0
 # ICP's cost grows with the source's points (one nearest-neighbour query each per iteration); a fixed-seed random
 # subset is faster on large scans and no less accurate than a voxel grid (docs/DESIGN.md, "ICP on real scans").
@@ -86,7 +85,7 @@ def icp_target(target: Array, resolution: Resolution, normals: bool = True):  # 
     if len(target) > MAX_POINTS_BEFORE_VOXEL:
         cell = TARGET_VOXEL_SPACINGS * resolution.spacing
         cloud = cloud.voxel_down_sample(cell)
-        if resolution.flatness <= POINT_TO_POINT_FROM_FLATNESS:
+        if resolution.smooth:
             radius = TARGET_NORMAL_CELLS * cell
     if normals:
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=NORMAL_MAX_NN))
@@ -99,7 +98,7 @@ def make_icp(
     """An ``IcpFn`` running Open3D's ICP from an estimate, one pass per ``(method, max_distance)`` stage, each
     from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 8, 4 and 2 spacings, then
     point-to-point at 2 and 1; the point-to-point stages are skipped where the target is planar at its resolution,
-    ``POINT_TO_POINT_FROM_FLATNESS``).
+    ``Resolution.smooth``).
     ``window_unit``: the stages' distances are in spacings of the data (``"spacing"``) or
     in the unit frame (``"extent"``). The target's preparation (voxel grid, normals) is cached per content."""
     import open3d as o3d
@@ -130,8 +129,7 @@ def make_icp(
         return targets.get(target, resolution.spacing, lambda t: icp_target(t, resolution, needs_normals))
 
     def stages_for(resolution: Resolution) -> tuple[IcpStage, ...]:
-        smooth = resolution.flatness <= POINT_TO_POINT_FROM_FLATNESS
-        finish = tuple(s for s in stages if not (smooth and s[0] == POINT_TO_POINT))
+        finish = tuple(s for s in stages if not (resolution.smooth and s[0] == POINT_TO_POINT))
         return finish or stages  # a point-to-point-only list runs as it is
 
     def icp(

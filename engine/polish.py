@@ -7,7 +7,7 @@ a third of the time). On dense range scans of smooth surfaces this is the more p
 (objects of the real-scan pairs, from the truth turned 3°: 0.089° / 0.21 mm against Open3D's stages' 0.10° /
 0.34 mm; docs/DESIGN.md, "The polish"). Only on dense clouds (``Resolution.dense``: spacing under
 ``core.resolution.SPARSE_FROM`` of the target's radius, as the confidence counts sparse) whose surface is smooth
-at its resolution (``Resolution.flatness`` at most ``POLISH_MAX_FLATNESS``): on ModelNet40's sparse samples a
+at its resolution (``Resolution.smooth``): on ModelNet40's sparse samples a
 voxel grid of 4 spacings leaves a few dozen points (the polish moved an exact clean result 1.5° off) and on noisy
 RGB-D fragments a voxel's neighbourhood is no plane.
 """
@@ -21,7 +21,6 @@ from pranet.core.resolution import Resolution
 from pranet.core.se3 import Array
 from pranet.engine.content_cache import LastByContent
 
-POLISH_MAX_FLATNESS = 0.25  # the same bound as the point-to-point finish of ``engine.icp``: the surface is smooth
 WINDOWS = (0.5,)  # voxels: Open3D's stages already ended within 2 spacings (half a voxel)
 NEIGHBOURS = 10  # small_gicp's default for its covariances
 MAX_ITERATIONS = 20
@@ -29,8 +28,8 @@ MAX_ITERATIONS = 20
 
 def polishable(resolution: Resolution) -> bool:
     """Whether the polish finishes registrations at ``resolution``: dense clouds (relative spacing at most
-    ``Resolution.dense``) whose surface is smooth at its resolution (flatness at most ``POLISH_MAX_FLATNESS``)."""
-    return resolution.dense and resolution.flatness <= POLISH_MAX_FLATNESS
+    ``Resolution.dense``) whose surface is smooth at its resolution (``Resolution.smooth``)."""
+    return resolution.dense and resolution.smooth
 
 
 def make_polish(threads: int = 1) -> PolishFn:

@@ -10,8 +10,8 @@ pytest.importorskip("small_gicp")
 
 from pranet.core.metrics import isotropic_errors  # noqa: E402
 from pranet.core.nearest import PointIndex  # noqa: E402
-from pranet.core.resolution import measure_resolution  # noqa: E402
-from pranet.engine.polish import POLISH_MAX_FLATNESS, make_polish  # noqa: E402
+from pranet.core.resolution import SMOOTH_UP_TO, measure_resolution  # noqa: E402
+from pranet.engine.polish import make_polish  # noqa: E402
 
 
 def dense_pair(seed: int = 0):
@@ -34,7 +34,7 @@ def dense_pair(seed: int = 0):
 def test_polish_lands_on_the_truth_from_a_degree_off():
     source, target, T = dense_pair()
     resolution = measure_resolution(PointIndex(source), PointIndex(target))
-    assert resolution.flatness <= POLISH_MAX_FLATNESS
+    assert resolution.flatness <= SMOOTH_UP_TO
     start = T.copy()
     start[:3, :3] = Rotation.from_rotvec([0.0, 0.015, 0.0]).as_matrix() @ T[:3, :3]  # 0.86° off
     start[:3, 3] += [0.004, 0.0, -0.003]
@@ -47,7 +47,7 @@ def test_polish_lands_on_the_truth_from_a_degree_off():
 def test_polish_declines_rough_data():
     source, target, T = dense_pair(1)
     resolution = measure_resolution(PointIndex(source), PointIndex(target))
-    rough = replace(resolution, flatness=POLISH_MAX_FLATNESS + 0.1)
+    rough = replace(resolution, flatness=SMOOTH_UP_TO + 0.1)
     assert make_polish()(source, target, T, rough) is None
 
 
