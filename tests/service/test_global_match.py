@@ -142,3 +142,36 @@ def test_an_rgbd_pair_is_matched_seen_from_its_sensors(scans_dir):
     assert found is not None
     errors = pose_errors(clouds.norm.transform_to_world(found), pair.T_gt)
     assert is_right(*errors, SCENE), errors
+
+
+def test_kiss_matcher_sees_a_smooth_scan_averaged_on_half_its_voxel_and_a_rough_one_as_it_is(monkeypatch):
+    """On a smooth surface (``Resolution.smooth``) KISS-Matcher's input is averaged on a grid of ``KISS_INPUT_GRID``
+    of its voxels, a fraction of the points, and its answer is still within ICP's reach; a rough surface (noisy RGB-D)
+    is given every point. A stand-in of KISS-Matcher records the clouds it is given."""
+    from dataclasses import replace
+
+    import kiss_matcher
+
+    source, target, T = turned_pair(150.0)
+    resolution = measure_resolution(source, target)
+    sizes = []
+    real = kiss_matcher.KISSMatcher
+
+    class Spy:
+        def __init__(self, config):
+            self.matcher = real(config)
+
+        def estimate(self, src, tgt):
+            sizes.append((len(src), len(tgt)))
+            return self.matcher.estimate(src, tgt)
+
+        def get_num_final_inliers(self):
+            return self.matcher.get_num_final_inliers()
+
+    monkeypatch.setattr(kiss_matcher, "KISSMatcher", Spy)
+    smooth, rough = replace(resolution, flatness=0.0), replace(resolution, flatness=0.5)
+    found = kiss_matcher_global_match(source, target, smooth, 0, None, 1.0)
+    assert found is not None and isotropic_errors(found, T)[0] < 10.0
+    assert gm.KISS_INPUT_GRID is not None and max(sizes[-1]) < 0.8 * len(source)  # 2 spacings: fewer points
+    kiss_matcher_global_match(source, target, rough, 0, None, 1.0)
+    assert sizes[-1] == (len(source), len(target))
