@@ -37,11 +37,12 @@ SCALED_VOXEL = 1.0
 # only when the coarse answer, refined, is not confident (docs/DESIGN.md, "The global match: where it looks from,
 # on which grid, and when RANSAC follows").
 KISS_GRIDS = (2.0, 1.0)
-# Where the surface is smooth at its resolution (``Resolution.smooth``), KISS-Matcher's input is first averaged on a
-# grid of this many of its voxels (None: never): its own voxel grid, normals and features then see a few thousand
-# points, not every point of a dense scan. On the bunny views it took 45-50 ms instead of 80-130, and the requests
-# the global match wins 0.76-0.88x as long, with the same answers on all 44 real-scan pairs; on noisy RGB-D
-# fragments the averaging moved its features (the requests 1.08-1.34x as long), so they keep their points
+# On dense clouds whose surface is smooth at its resolution (``Resolution.dense`` and ``smooth``: where the polish
+# runs), KISS-Matcher's input is first averaged on a grid of this many of its voxels (None: never): its own voxel
+# grid, normals and features then see a few thousand points, not every point of a dense scan. On the bunny views it
+# took 45-50 ms instead of 80-130, and the requests the global match wins 0.76-0.88x as long, with the same answers
+# on all 44 real-scan pairs; on noisy RGB-D fragments the averaging moved its features (the requests 1.08-1.34x as
+# long), so they keep their points, as do sparse shapes (ModelNet40's), where there is no time to save
 # (docs/DESIGN.md, "The ICP's target on one voxel").
 KISS_INPUT_GRID: float | None = 0.5
 MIN_FINAL_INLIERS = 3  # fewer translation inliers: no answer (three matches fix a rigid motion)
@@ -132,7 +133,7 @@ def kiss_matcher_match(
     scale = SCALED_VOXEL / voxel
     config = kiss_matcher.KISSMatcherConfig(SCALED_VOXEL, fpfh_r_gain=FEATURE_VOXELS)
     matcher = kiss_matcher.KISSMatcher(config)
-    averaged = KISS_INPUT_GRID if resolution.smooth else None
+    averaged = KISS_INPUT_GRID if resolution.dense and resolution.smooth else None
     src = _kiss_input((subsample(source, MAX_POINTS, seed=seed) - origin) * scale, averaged)
     tgt = _kiss_input((subsample(target, MAX_POINTS, seed=seed + 1) - origin) * scale, averaged)
     solution = matcher.estimate(src, tgt)

@@ -145,9 +145,10 @@ def test_an_rgbd_pair_is_matched_seen_from_its_sensors(scans_dir):
 
 
 def test_kiss_matcher_sees_a_smooth_scan_averaged_on_half_its_voxel_and_a_rough_one_as_it_is(monkeypatch):
-    """On a smooth surface (``Resolution.smooth``) KISS-Matcher's input is averaged on a grid of ``KISS_INPUT_GRID``
-    of its voxels, a fraction of the points, and its answer is still within ICP's reach; a rough surface (noisy RGB-D)
-    is given every point. A stand-in of KISS-Matcher records the clouds it is given."""
+    """On a dense cloud with a smooth surface (``Resolution.dense`` and ``smooth``) KISS-Matcher's input is averaged
+    on a grid of ``KISS_INPUT_GRID`` of its voxels, a fraction of the points, and its answer is still within ICP's
+    reach; a rough surface (noisy RGB-D) or a sparse cloud is given every point. A stand-in of KISS-Matcher records
+    the clouds it is given."""
     from dataclasses import replace
 
     import kiss_matcher
@@ -169,9 +170,11 @@ def test_kiss_matcher_sees_a_smooth_scan_averaged_on_half_its_voxel_and_a_rough_
             return self.matcher.get_num_final_inliers()
 
     monkeypatch.setattr(kiss_matcher, "KISSMatcher", Spy)
-    smooth, rough = replace(resolution, flatness=0.0), replace(resolution, flatness=0.5)
+    smooth = replace(resolution, flatness=0.0, relative_spacing=0.001)
+    rough, sparse = replace(smooth, flatness=0.5), replace(smooth, relative_spacing=0.05)
     found = kiss_matcher_global_match(source, target, smooth, 0, None, 1.0)
     assert found is not None and isotropic_errors(found, T)[0] < 10.0
     assert gm.KISS_INPUT_GRID is not None and max(sizes[-1]) < 0.8 * len(source)  # 2 spacings: fewer points
-    kiss_matcher_global_match(source, target, rough, 0, None, 1.0)
-    assert sizes[-1] == (len(source), len(target))
+    for whole in (rough, sparse):
+        kiss_matcher_global_match(source, target, whole, 0, None, 1.0)
+        assert sizes[-1] == (len(source), len(target))
