@@ -205,7 +205,9 @@ class RegistrationContext:
         exit check where it stood at the last one (on an RGB-D fragment that was 350 ms of ICP spent twice)."""
         key = np.ascontiguousarray(T_unit, dtype=np.float64).tobytes()
         if refined is None and key in self.offered:
-            return self.offered[key]
+            seen = self.offered[key]
+            self.tried[name] = max(self.tried.get(name, 0.0), seen.confidence.score)
+            return seen
         if refined is None and self.icp is not None:
             refined, _ = self.refine(T_unit, self.config.icp_gate)
         T = refined.transform if refined is not None else T_unit

@@ -524,3 +524,38 @@ def test_a_global_answer_on_enough_matches_that_icp_kept_is_converged_whatever_i
     assert certified.confidence.score < estimator.threshold
     for short in (run(CERTIFYING_MATCHES - 1), run(CERTIFYING_MATCHES, moved_voxels=3.0)):
         assert short.confidence.status == "suspect" and short.confidence.matches == 0
+
+
+def test_an_estimate_offered_again_is_not_refined_again():
+    """An agent that stopped early reaches its next exit check where it stood at the last one: ``offer`` gives back
+    the candidate that estimate became (and records the new name), without a second ICP; another estimate is
+    refined."""
+    from pranet.core.registration_context import RegistrationContext
+    from pranet.core.stage_timer import StageTimer
+
+    src, tgt, T = rotated_problem(20.0)
+    clouds = prepare(src, tgt, 256, np.random.default_rng(0))
+    refined = []
+
+    def icp(s, t, init, res=None, proceed=None):
+        refined.append(init.copy())
+        return IcpResult(unit_truth(src, tgt, T), 1.0, 0.0)
+
+    ctx = RegistrationContext(
+        clouds=clouds,
+        config=RegistrationConfig(icp_stages=(("point_to_plane", 2.0),)),
+        scorer=None,
+        schedule=(20, 40),
+        rng=np.random.default_rng(0),
+        seed=0,
+        timer=StageTimer(STAGES),
+        estimator=ConfidenceEstimator(clouds.src_index, clouds.tgt_index, clouds.resolution),
+        icp=icp,
+    )
+    estimate = np.eye(4)
+    first = ctx.offer("agent", estimate.copy(), agent_index=0)
+    again = ctx.offer("restarts", estimate.copy(), agent_index=1)
+    assert again is first and len(refined) == 1
+    assert ctx.tried == {"agent": first.confidence.score, "restarts": first.confidence.score}
+    ctx.offer("agent", unit_truth(src, tgt, T))
+    assert len(refined) == 2
