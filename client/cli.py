@@ -257,6 +257,8 @@ def format_summary(result: RegistrationResult, source: Path, target: Path, n_sou
             parts.append(f"status: {result.status}")
         if result.confidence is not None:
             parts.append(f"confidence: {result.confidence:.3f}")
+        if result.matches:  # converged on the global match's evidence, not on the confidence
+            parts.append(f"certified by {result.matches} feature matches")
         if result.candidate is not None:
             parts.append(f"candidate: {result.candidate}")
         lines.append(", ".join(parts))

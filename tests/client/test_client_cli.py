@@ -136,7 +136,12 @@ def test_confidence_and_status_are_printed(fake_service, clouds, capsys) -> None
     body = {**canned_response(T_KNOWN), "confidence": 0.5, "status": "converged"}
     fake_service.routes[("POST", "/register")] = lambda _: (200, body)
     assert main(["register", *map(str, clouds), "--url", fake_service.url]) == 0
-    assert "status: converged, confidence: 0.500" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "status: converged, confidence: 0.500" in out and "certified" not in out
+    certified = {**body, "confidence": 0.13, "matches": 255}  # ring LiDAR: converged on the global match's matches
+    fake_service.routes[("POST", "/register")] = lambda _: (200, certified)
+    assert main(["register", *map(str, clouds), "--url", fake_service.url]) == 0
+    assert "status: converged, confidence: 0.130, certified by 255 feature matches" in capsys.readouterr().out
 
 
 def test_save_aligned_and_plot(fake_service, clouds, tmp_path: Path) -> None:

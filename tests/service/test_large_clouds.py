@@ -62,6 +62,26 @@ def test_a_269k_point_rgbd_fragment_registers_over_http(fresh_server, scans_dir:
     assert 0.004 < out["spacing"] < 0.02  # metres: the fragments' lattice, measured on the capped working copy
 
 
+def test_an_outdoor_lidar_pair_is_converged_on_the_global_match_feature_matches(fresh_server, scans_dir: Path) -> None:
+    """Two 70k-point ring LiDAR scans 0.5 m apart: every answer is loose at the rings' spacing, the right one too
+    (confidence under the 0.40 threshold), so the status comes from the global match's certificate: right within a
+    degree and 10 cm, ``converged``, and the response says on how many feature matches (``core.confidence.certify``)."""
+    from pranet.core.confidence import CERTIFYING_MATCHES, DEFAULT_THRESHOLD
+
+    pairs = scans_dir / "pairs.csv"
+    row = next(r for r in csv.DictReader(pairs.open()) if r["id"] == "lidar_outdoor")
+    source, target = read_ply_points(scans_dir / row["source"]), read_ply_points(scans_dir / row["target"])
+    T_gt = np.array(row["T_target_source"].split(), dtype=float).reshape(4, 4)
+    with httpx.Client(base_url=fresh_server.url, timeout=120.0) as http:
+        r = http.post("/register", json={"source": b64(source), "target": b64(target), "return_trajectory": False})
+    assert r.status_code == 200, r.text[:500]
+    out = r.json()
+    rot, trans = isotropic_errors(np.asarray(out["transform"]), T_gt)
+    assert rot < 1.0 and trans < 0.1, (rot, trans)
+    assert out["candidate"] == "global_match" and out["status"] == "converged"
+    assert out["matches"] >= CERTIFYING_MATCHES and out["confidence"] < DEFAULT_THRESHOLD, out["confidence"]
+
+
 @pytest.mark.slow
 def test_a_million_point_pair_registers_in_bounded_memory(fresh_server) -> None:
     """Two 1M-point scans of a 10 m object (5 mm noise), 25° apart: answered right and `converged`, and the server's
