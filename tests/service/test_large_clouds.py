@@ -34,6 +34,21 @@ def read_ply_points(path: Path) -> np.ndarray:
     return np.asarray(o3d.io.read_point_cloud(str(path)).points)
 
 
+def register_listed_pair(url: str, scans_dir: Path, pair_id: str):
+    """POST the default request for the pair ``pair_id`` of ``scans_dir/pairs.csv``: the response (200 asserted), the
+    ground truth ``T_target_source`` and the two clouds as sent."""
+    pairs = scans_dir / "pairs.csv"
+    if not pairs.exists():
+        pytest.skip(f"{pairs} not found (the real scans)")
+    row = next(r for r in csv.DictReader(pairs.open()) if r["id"] == pair_id)
+    source, target = read_ply_points(scans_dir / row["source"]), read_ply_points(scans_dir / row["target"])
+    T_gt = np.array(row["T_target_source"].split(), dtype=float).reshape(4, 4)
+    with httpx.Client(base_url=url, timeout=120.0) as http:
+        r = http.post("/register", json={"source": b64(source), "target": b64(target), "return_trajectory": False})
+    assert r.status_code == 200, r.text[:500]
+    return r.json(), T_gt, source, target
+
+
 @pytest.fixture()
 def fresh_server(tmp_path: Path):
     server = start_live_server(tmp_path)
@@ -46,16 +61,7 @@ def fresh_server(tmp_path: Path):
 def test_a_269k_point_rgbd_fragment_registers_over_http(fresh_server, scans_dir: Path) -> None:
     """3DMatch redkitchen fragments 1 -> 0 (269k and 258k points, 6 mm lattice, 50° apart): answered, not refused,
     within 3DMatch's recall thresholds (15°, 30 cm), with every cloud's size reported back."""
-    pairs = scans_dir / "pairs.csv"
-    if not pairs.exists():
-        pytest.skip(f"{pairs} not found (the real scans)")
-    row = next(r for r in csv.DictReader(pairs.open()) if r["id"] == "3dmatch_redkitchen_1_to_0")
-    source, target = read_ply_points(scans_dir / row["source"]), read_ply_points(scans_dir / row["target"])
-    T_gt = np.array(row["T_target_source"].split(), dtype=float).reshape(4, 4)
-    with httpx.Client(base_url=fresh_server.url, timeout=120.0) as http:
-        r = http.post("/register", json={"source": b64(source), "target": b64(target), "return_trajectory": False})
-    assert r.status_code == 200, r.text[:500]
-    out = r.json()
+    out, T_gt, source, target = register_listed_pair(fresh_server.url, scans_dir, "3dmatch_redkitchen_1_to_0")
     assert (out["n_source"], out["n_target"]) == (len(source), len(target)) == (268977, 258342)
     rot, trans = isotropic_errors(np.asarray(out["transform"]), T_gt)
     assert rot < 15.0 and trans < 0.3 and out["status"] == "converged", (rot, trans, out["status"])
@@ -68,14 +74,7 @@ def test_an_outdoor_lidar_pair_is_converged_on_the_global_match_feature_matches(
     degree and 10 cm, ``converged``, and the response says on how many feature matches (``core.confidence.certify``)."""
     from pranet.core.confidence import CERTIFYING_MATCHES, DEFAULT_THRESHOLD
 
-    pairs = scans_dir / "pairs.csv"
-    row = next(r for r in csv.DictReader(pairs.open()) if r["id"] == "lidar_outdoor")
-    source, target = read_ply_points(scans_dir / row["source"]), read_ply_points(scans_dir / row["target"])
-    T_gt = np.array(row["T_target_source"].split(), dtype=float).reshape(4, 4)
-    with httpx.Client(base_url=fresh_server.url, timeout=120.0) as http:
-        r = http.post("/register", json={"source": b64(source), "target": b64(target), "return_trajectory": False})
-    assert r.status_code == 200, r.text[:500]
-    out = r.json()
+    out, T_gt, _, _ = register_listed_pair(fresh_server.url, scans_dir, "lidar_outdoor")
     rot, trans = isotropic_errors(np.asarray(out["transform"]), T_gt)
     assert rot < 1.0 and trans < 0.1, (rot, trans)
     assert out["candidate"] == "global_match" and out["status"] == "converged"
