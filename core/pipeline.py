@@ -197,8 +197,9 @@ def global_match(ctx: RegistrationContext) -> None:
     """The classical global candidates: features matched at the data's resolution and a robust solver, from any
     initial rotation, each refined by the same ICP; cheapest first, and no more once one is confident. An answer
     resting on enough feature matches, which its ICP agreed with, is confident whatever its score
-    (``core.confidence.certify``). Seeded: the same request gives the same answer. Its features see the surface from
-    the input frame's origin (``PreparedClouds.viewpoint``)."""
+    (``core.confidence.certify``). Seeded (RANSAC); KISS-Matcher's answer varies a little with the order of its
+    threads (docs/DESIGN.md, "Same request, same answer"). Its features see the surface from the input frame's origin
+    (``PreparedClouds.viewpoint``)."""
     assert ctx.global_match is not None
     c = ctx.clouds
     for answer in ctx.global_match(c.src_unit, c.tgt_unit, c.resolution, ctx.seed, c.viewpoint):

@@ -3,9 +3,10 @@
 ``global_matches`` offers KISS-Matcher's answers (FPFH on a voxel grid, graph-theoretic outlier pruning and a robust
 solver) on a grid of two voxels, then of one, then, unless KISS-Matcher's answer rests on enough matches, Open3D's
 FPFH + RANSAC at one voxel; lazily, so the pipeline pays only for those it asks for before one is confident.
-KISS-Matcher first: as accurate on the real-scan pairs and several times faster, and deterministic (no random
-sampling); RANSAC is seeded with the request's seed, so the same request gets the same answer (docs/DESIGN.md,
-"The global candidate"). All take the clouds in the unit frame.
+KISS-Matcher first: as accurate on the real-scan pairs and several times faster, with no random sampling (but its
+matching runs on TBB threads, whose order moves its answer a little: docs/DESIGN.md, "Same request, same answer");
+RANSAC is seeded with the request's seed and runs on one thread, so it repeats exactly (docs/DESIGN.md, "The global
+candidate"). All take the clouds in the unit frame.
 
 KISS-Matcher turns every normal toward the origin of the coordinates it is given (its FPFH needs one consistent
 side of the surface), which assumes the origin is where the sensor was. Scans come in their sensor's frame (a
@@ -88,9 +89,8 @@ def global_matches(
     """Answers (``T_target_source`` (4, 4) and the matches it rests on) of ``source: (N, 3)`` onto
     ``target: (M, 3)`` from any initial pose, cheapest first, each computed when asked for: KISS-Matcher's on each
     of ``KISS_GRIDS``, then RANSAC's unless KISS-Matcher's answer on the finest grid rests on ``TRUSTED_INLIERS``
-    matches or more. None at all where the
-    clouds cover fewer than ``MIN_VOXELS`` voxels. ``viewpoint`` (3,): where the sensor was, in the clouds' frame
-    (``None``: their origin)."""
+    matches or more. None at all where the clouds cover fewer than ``MIN_VOXELS`` voxels. ``viewpoint`` (3,): where
+    the sensor was, in the clouds' frame (``None``: their origin)."""
     if not enough_voxels(source, target, resolution.voxel):
         return
     inliers = 0
