@@ -67,6 +67,11 @@ class Confidence:
     spacing: float  # the data's spacing, unit frame
     matches: int = 0  # the feature matches that certify it (``certify``); 0: judged by its score alone
 
+    def outranks(self, other: Confidence) -> bool:
+        """Whether a result of this confidence ranks above one of ``other``: ``converged`` above ``suspect``, then the
+        higher score (the status follows the score except where a global match's feature matches certify it)."""
+        return (self.status == "converged", self.score) > (other.status == "converged", other.score)
+
     def as_dict(self) -> dict[str, float | str]:
         return asdict(self)
 

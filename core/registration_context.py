@@ -92,6 +92,11 @@ def prepare(
     )
 
 
+def estimate_key(T_unit: npt.ArrayLike) -> bytes:
+    """An estimate's identity (its exact float64 bytes): what ``offer`` has seen before."""
+    return np.ascontiguousarray(T_unit, dtype=np.float64).tobytes()
+
+
 @dataclass
 class RegistrationContext:
     """One registration in progress. Stages read the clouds and functions and ``offer`` their candidates;
@@ -203,7 +208,7 @@ class RegistrationContext:
 
         An estimate offered before is not refined and scored again: an agent that stopped early reaches its next
         exit check where it stood at the last one (on an RGB-D fragment that was 350 ms of ICP spent twice)."""
-        key = np.ascontiguousarray(T_unit, dtype=np.float64).tobytes()
+        key = estimate_key(T_unit)
         if refined is None and key in self.offered:
             seen = self.offered[key]
             self.tried[name] = max(self.tried.get(name, 0.0), seen.confidence.score)
@@ -214,7 +219,7 @@ class RegistrationContext:
         confidence = self.judge(T, T_unit, matches)
         if refined is not None and self.config.icp_guard:
             unrefined = self.evaluate(T_unit)  # the matches certify the answer ICP agreed with, not the raw one
-            if Candidate(unrefined, name, T_unit, None).beats(Candidate(confidence, name, T, refined)):
+            if unrefined.outranks(confidence):
                 T, refined, confidence = T_unit, None, unrefined
         candidate = Candidate(confidence, name, T, refined, agent_index)
         self.tried[name] = max(self.tried.get(name, 0.0), candidate.confidence.score)
@@ -236,10 +241,10 @@ class RegistrationContext:
         wait their turn"). Dense clouds only: on sparse ones (ModelNet40's) a wrong estimate's whole ICP costs a
         few milliseconds, less than the global match that waiting makes it run."""
         gate = self.config.icp_gate
-        key = np.ascontiguousarray(T_unit, dtype=np.float64).tobytes()
+        key = estimate_key(T_unit)
         if key in self.offered:
             return self.offered[key]
-        if any(np.array_equal(d.T_unit, T_unit) for d in self.deferred):
+        if any(estimate_key(d.T_unit) == key for d in self.deferred):
             return None  # already waiting
         if not self.config.defer_doubtful or self.icp is None or gate is None or not self.clouds.resolution.dense:
             return self.offer(name, T_unit, agent_index, matches=matches)

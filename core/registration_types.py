@@ -81,12 +81,8 @@ class Candidate:
     agent_index: int | None = None  # which agent run it came from; None for the classical candidates
 
     def beats(self, other: Candidate | None) -> bool:
-        """Whether this candidate ranks above ``other``: ``converged`` above ``suspect``, then the higher score (the
-        status follows the score except where a global match's feature matches certify it)."""
-        if other is None:
-            return True
-        mine, theirs = self.confidence, other.confidence
-        return (mine.status == "converged", mine.score) > (theirs.status == "converged", theirs.score)
+        """Whether this candidate ranks above ``other`` (``Confidence.outranks``)."""
+        return other is None or self.confidence.outranks(other.confidence)
 
 
 @dataclass(frozen=True)

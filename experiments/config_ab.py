@@ -7,13 +7,13 @@ candidates wait their turn" and "An exit check halfway through the coarse phase"
 
     python experiments/config_ab.py PAIRS.csv --set defer_doubtful=False [--repeats 3] [--threads 1]
     python experiments/config_ab.py --modelnet 150 --set "exit_checks=(20,40)"
-    python experiments/config_ab.py PAIRS.csv --dense-tolerance-b 1e-6 --repeats 2
+    python experiments/config_ab.py PAIRS.csv --constant-b icp.DENSE_TOLERANCE=1e-6 --repeats 2
     python experiments/config_ab.py PAIRS.csv --constant-b icp.TARGET_VOXEL_SPACINGS=4.0
 
-``--dense-tolerance-b``: B's engine refines dense clouds with this ICP tolerance instead of
-``engine.icp.DENSE_TOLERANCE`` (docs/DESIGN.md, "ICP tolerance on dense clouds"). ``--constant-b``: a constant of
-a ``pranet.engine`` module (``MODULE.NAME=VALUE``, a Python literal) set to another value while B warms up and
-registers, and restored after (for constants read when a registration runs).
+``--constant-b``: a constant of a ``pranet.engine`` module (``MODULE.NAME=VALUE``, a Python literal) set to another
+value while B warms up and registers, and restored after. B has an engine of its own (the same model), so constants
+read when its ICP functions are made (``icp.DENSE_TOLERANCE``: docs/DESIGN.md, "ICP tolerance on dense clouds") count
+as well as those read during a registration.
 
 A is the service default; B is the default with the ``--set`` changes (RegistrationConfig fields, Python literals).
 """
@@ -39,7 +39,6 @@ def parse_args():
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="B's change (repeatable)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--dense-tolerance-b", type=float, help="B's ICP tolerance on dense clouds")
     p.add_argument("--constant-b", action="append", default=[], metavar="MODULE.NAME=VALUE", help="B's engine constant")
     p.add_argument("--skip", default="lidar", help="skip pairs whose id contains this ('' = none)")
     return p.parse_args()
@@ -83,22 +82,6 @@ def modelnet(args: argparse.Namespace, engines: dict, configs: dict) -> None:
         )
 
 
-def engine_b(engine: Engine, dense_tolerance: float | None) -> Engine:
-    """``engine`` itself, or one sharing its model whose ICP uses ``dense_tolerance`` on dense clouds."""
-    if dense_tolerance is None:
-        return engine
-    from pranet.engine import icp
-
-    def factory(stages, window_unit="spacing"):
-        kept, icp.DENSE_TOLERANCE = icp.DENSE_TOLERANCE, dense_tolerance  # read when the criteria are made
-        try:
-            return icp.make_icp(stages, window_unit=window_unit)
-        finally:
-            icp.DENSE_TOLERANCE = kept
-
-    return Engine(engine.scorer, icp_factory=factory)
-
-
 class PatchedEngine:
     """An engine whose ``warm_up`` and ``register`` run with some ``pranet.engine`` module constants changed."""
 
@@ -140,14 +123,11 @@ def main() -> None:
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
     configs = {"A": SERVICE_DEFAULT, "B": SERVICE_DEFAULT.with_(**changes)}
     engine = Engine.load(threads=args.threads)
-    engines = {"A": engine, "B": engine_b(engine, args.dense_tolerance_b)}
     constants = parse_constants(args.constant_b)
-    if constants:
-        engines["B"] = PatchedEngine(engines["B"], constants)
+    engines = {"A": engine, "B": PatchedEngine(Engine(engine.scorer), constants) if constants else engine}
     for e in engines.values():
         e.warm_up()
-    b_engine = f", dense ICP tolerance {args.dense_tolerance_b:g}" if args.dense_tolerance_b else ""
-    b_engine += "".join(f", {m}.{n}={v!r}" for (m, n), v in constants.items())
+    b_engine = "".join(f", {m}.{n}={v!r}" for (m, n), v in constants.items())
     if args.modelnet:
         print(f"A: the service default; B: {changes}{b_engine}; {args.threads} thread(s)")
         modelnet(args, engines, configs)
