@@ -21,13 +21,13 @@ from pranet.engine.global_match import global_matches
 from pranet.engine.icp import make_icp
 from pranet.engine.polish import make_polish
 
-IcpFactory = Callable[..., IcpFn]  # (stages, window_unit=...) -> IcpFn
+IcpFactory = Callable[..., IcpFn]  # (stages, window_unit=..., kernel=...) -> IcpFn
 
 
 class Engine:
     """``scorer`` (a ``RewardModel``, or any ``core.pipeline.Scorer``) plus one ICP function per distinct list of
-    stages, made by ``icp_factory`` (Open3D's, by default) on first use and kept (each caches its last target's
-    preparation)."""
+    stages and kernel, made by ``icp_factory`` (Open3D's, by default) on first use and kept (each caches its last
+    target's preparation)."""
 
     def __init__(
         self,
@@ -40,7 +40,7 @@ class Engine:
         self._icp_factory = icp_factory
         self._global_match = global_match
         self._polish = polish if polish is not None else make_polish()
-        self._icps: dict[tuple[tuple[IcpStage, ...], str], IcpFn] = {}
+        self._icps: dict[tuple[tuple[IcpStage, ...], str, float | None], IcpFn] = {}
         self._lock = threading.Lock()
 
     @classmethod
@@ -50,12 +50,12 @@ class Engine:
 
         return cls(RewardModel.load(model_dir, threads=threads, precision=precision))
 
-    def icp(self, stages: tuple[IcpStage, ...], window_unit: str = "spacing") -> IcpFn:
-        """The ICP function running ``stages`` (built once per distinct stages)."""
+    def icp(self, stages: tuple[IcpStage, ...], window_unit: str = "spacing", kernel: float | None = None) -> IcpFn:
+        """The ICP function running ``stages`` (built once per distinct stages, window unit and kernel)."""
         with self._lock:
-            key = (stages, window_unit)
+            key = (stages, window_unit, kernel)
             if key not in self._icps:
-                self._icps[key] = self._icp_factory(stages, window_unit=window_unit)
+                self._icps[key] = self._icp_factory(stages, window_unit=window_unit, kernel=kernel)
             return self._icps[key]
 
     def warm_up(self, config: RegistrationConfig = SERVICE_DEFAULT) -> None:
@@ -70,7 +70,7 @@ class Engine:
         self.register(shape, turned, config.with_(rescue_restarts=False, rescue_window=None))
 
     def _refinement(self, config: RegistrationConfig) -> tuple[IcpFn | None, IcpFn | None]:
-        icp = self.icp(config.icp_stages) if config.refines else None
+        icp = self.icp(config.icp_stages, kernel=config.icp_kernel) if config.refines else None
         wide = None
         if icp is not None and config.rescue_window is not None:
             wide = self.icp(((POINT_TO_POINT, config.rescue_window),), window_unit="extent")

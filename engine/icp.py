@@ -93,12 +93,17 @@ def icp_target(target: Array, resolution: Resolution, normals: bool = True):  # 
 
 
 def make_icp(
-    stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES, max_iterations: int = 30, window_unit: str = "spacing"
+    stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES,
+    max_iterations: int = 30,
+    window_unit: str = "spacing",
+    kernel: float | None = None,
 ):  # -> IcpFn
     """An ``IcpFn`` running Open3D's ICP from an estimate, one pass per ``(method, max_distance)`` stage, each
     from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 8, 4 and 2 spacings, then
     point-to-point at 2 and 1; the point-to-point stages are skipped where the target is planar at its resolution,
-    ``Resolution.smooth``).
+    ``Resolution.smooth``). ``kernel``: on sparse clouds (not ``Resolution.dense``), the point-to-plane stages weigh
+    each match by Tukey's biweight with a scale of this many spacings (``core.registration_config.ICP_KERNEL``);
+    ``None``: least squares everywhere.
     ``window_unit``: the stages' distances are in spacings of the data (``"spacing"``) or
     in the unit frame (``"extent"``). The target's preparation (voxel grid, normals) is cached per content."""
     import open3d as o3d
@@ -108,6 +113,8 @@ def make_icp(
     stages = tuple((str(m), float(d)) for m, d in stages)
     if not stages:
         raise ValueError("ICP needs at least one stage")
+    if kernel is not None and not kernel > 0:
+        raise ValueError(f"kernel must be > 0 or None, got {kernel}")
     check_icp_stages(stages)
     reg = o3d.pipelines.registration
     estimations = {
@@ -127,6 +134,11 @@ def make_icp(
 
     def prepared_target(target: Array, resolution: Resolution):  # -> open3d.geometry.PointCloud
         return targets.get(target, resolution.spacing, lambda t: icp_target(t, resolution, needs_normals))
+
+    def estimation(method: str, resolution: Resolution):  # -> an Open3D TransformationEstimation
+        if method == POINT_TO_PLANE and kernel is not None and not resolution.dense:
+            return reg.TransformationEstimationPointToPlane(reg.TukeyLoss(kernel * resolution.spacing))
+        return estimations[method]
 
     def stages_for(resolution: Resolution) -> tuple[IcpStage, ...]:
         finish = tuple(s for s in stages if not (resolution.smooth and s[0] == POINT_TO_POINT))
@@ -149,13 +161,13 @@ def make_icp(
             # wide stage, and is told hopeless as well after a few (ICP carries nothing from one call to the next
             # but the transform, so the two parts are the one stage).
             method, distance = plan[0]
-            r = reg.registration_icp(src, tgt, distance * unit, T, estimations[method], gate_criteria)
+            r = reg.registration_icp(src, tgt, distance * unit, T, estimation(method, resolution), gate_criteria)
             T = r.transformation
             if not proceed(np.asarray(T)):
                 return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
         stage_criteria = dense_criteria if resolution.dense else criteria
         for method, distance in plan:
-            r = reg.registration_icp(src, tgt, distance * unit, T, estimations[method], stage_criteria)
+            r = reg.registration_icp(src, tgt, distance * unit, T, estimation(method, resolution), stage_criteria)
             T = r.transformation
         return IcpResult(np.asarray(T).copy(), float(r.fitness), float(r.inlier_rmse))
 

@@ -129,7 +129,7 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
         # a global match that finds nothing, so that only the restarts can rescue.
         engine = Engine(
             oracle,
-            icp_factory=lambda stages, window_unit="spacing": stays if len(stages) == 1 else icp,
+            icp_factory=lambda stages, window_unit="spacing", kernel=None: stays if len(stages) == 1 else icp,
             global_match=lambda *args: (),
         )
         out = run_registration(body, engine, info, CloudLimits(10**6, 10**6), time.monotonic() + 60)
