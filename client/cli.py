@@ -141,7 +141,14 @@ def _registration_options(parser: argparse.ArgumentParser) -> None:
         dest="polish",
         action="store_false",
         default=None,
-        help="do not refine the winning result with generalized ICP",
+        help="do not refine the winning result once more (generalized ICP on dense scans, robust ICP on sparse ones)",
+    )
+    parser.add_argument(
+        "--least-squares-icp",
+        dest="robust_icp",
+        action="store_false",
+        default=None,
+        help="ICP by least squares on sparse clouds, as the paper's v2 (default: a robust kernel there)",
     )
     parser.add_argument(
         "--init",
@@ -165,6 +172,7 @@ def _options_of(args: argparse.Namespace) -> dict[str, Any]:
         "global_match": args.global_match,
         "walk": args.walk,
         "polish": args.polish,
+        "robust_icp": args.robust_icp,
         "init": args.init,
         "starts": args.starts,
     }

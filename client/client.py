@@ -86,8 +86,8 @@ class RegistrationResult:
     n_source: int | None = None  # points the service received
     n_target: int | None = None
     exit_checks: list[dict[str, Any]] = field(default_factory=list)  # [{"step", "confidence"}]: ICP checks run
-    rescued: str | None = None  # "wide_icp" | "restarts": which rescue won, if any
-    candidate: str | None = None  # which candidate won: "agent", "global_match", "restarts" or "wide_icp"
+    rescued: str | None = None  # "wide_icp" | "restarts" | "shifted_icp": which rescue won, if any
+    candidate: str | None = None  # which candidate won: "agent", "global_match", "restarts", "wide_icp", "shifted_icp"
     candidates: dict[str, float] = field(default_factory=dict)  # every candidate tried -> its best confidence
     spacing: float | None = None  # the data's resolution (median nearest-neighbour distance), input units
     network_calls: int | None = None  # source poses the reward network scored
@@ -260,8 +260,8 @@ class PranetClient:
         """Register ``source`` onto ``target``: arrays ``(N, 3)`` / ``(M, 3)`` or point cloud file paths.
 
         ``options`` are passed through to the service (``policy``, ``early_stop``, ``seed``, ``steps``,
-        ``exit_checks``, ``rescue``, ``global_match``, ``walk``, ``polish``, ``return_trajectory``, ``init``,
-        ``starts``); ``None`` values are left out so the server's defaults apply.
+        ``exit_checks``, ``rescue``, ``global_match``, ``walk``, ``polish``, ``robust_icp``, ``return_trajectory``,
+        ``init``, ``starts``); ``None`` values are left out so the server's defaults apply.
         """
         payload: dict[str, Any] = {
             "source": encode_cloud(load_cloud(source), self.compact_threshold),

@@ -24,7 +24,9 @@ AGENT = "agent"  # the agent from the input pose (or, with init="global", from t
 GLOBAL_MATCH = "global_match"  # the classical global match (features + robust solver), refined
 RESTARTS = "restarts"  # the agent's coarse phase again from starts around the best estimate
 WIDE_ICP = "wide_icp"  # ICP with a wide window from the input pose
-CandidateName = Literal["agent", "global_match", "restarts", "wide_icp"]  # the wire's names (the response's)
+SHIFTED_ICP = "shifted_icp"  # ICP from the best estimate moved along the axes (sparse clouds)
+# the wire's names (the response's)
+CandidateName = Literal["agent", "global_match", "restarts", "wide_icp", "shifted_icp"]
 CANDIDATES: tuple[str, ...] = get_args(CandidateName)
 
 
@@ -124,4 +126,4 @@ class Registration:
     @property
     def rescued(self) -> str | None:
         """Which rescue won over the agent's result (``None``: the agent's own result won)."""
-        return self.candidate if self.candidate in (RESTARTS, WIDE_ICP) else None
+        return self.candidate if self.candidate in (RESTARTS, WIDE_ICP, SHIFTED_ICP) else None

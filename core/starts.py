@@ -101,3 +101,17 @@ def restart_transforms(T: npt.ArrayLike, source_centroid: npt.ArrayLike, rotatio
     m = np.asarray(source_centroid, dtype=np.float64)
     c = T[:3, :3] @ m + T[:3, 3]
     return np.stack([make_transform(Q @ T[:3, :3], c - Q @ T[:3, :3] @ m) for Q in np.asarray(rotations)])
+
+
+def shifted_transforms(T: npt.ArrayLike, distances: npt.ArrayLike) -> Array:
+    """``(6 D, 4, 4)``: the estimate ``T`` (``T_target_source``) moved by ``±d`` along x, y and z for each of
+    ``distances: (D,)`` (the frame's units), nearest first."""
+    T = np.asarray(T, dtype=np.float64)
+    out = []
+    for d in np.asarray(distances, dtype=np.float64):
+        for axis in range(3):
+            for sign in (1.0, -1.0):
+                moved = T.copy()
+                moved[axis, 3] += sign * d
+                out.append(moved)
+    return np.stack(out) if out else np.zeros((0, 4, 4))

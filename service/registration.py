@@ -130,17 +130,20 @@ def request_config(
     """The registration a request asks for: ``base`` (the service's default) with the request's options.
 
     ``icp: false`` is the paper's PRANet-v1 (no ICP, so no exit checks or rescues); exit checks apply to the
-    identity start only; ``rescue: false`` turns both rescues off, ``global_match: false`` the classical global
-    candidate, ``walk: false`` the walk (a network call per step, as the paper), ``polish: false`` the polish.
+    identity start only; ``rescue: false`` turns the rescues off, ``global_match: false`` the classical global
+    candidate, ``walk: false`` the walk (a network call per step, as the paper), ``polish: false`` the polish,
+    ``robust_icp: false`` the ICP's kernel on sparse clouds.
     """
     if req.steps is not None and len(req.steps) != n_scales:
         raise RequestError(422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts")
     refine = req.icp
     return base.with_(
         icp_stages=base.icp_stages if refine else (),
+        icp_kernel=base.icp_kernel if refine and req.robust_icp else None,
         exit_checks=tuple(req.exit_checks) if refine and req.init == "identity" else (),
         rescue_window=base.rescue_window if refine and req.rescue else None,
         rescue_restarts=base.rescue_restarts and refine and req.rescue,
+        rescue_shifts=base.rescue_shifts if refine and req.rescue else (),
         global_match=base.global_match and refine and req.global_match,
         init=req.init,
         n_starts=req.starts,

@@ -107,6 +107,12 @@ class RegisterRequest(_Strict):
     icp: bool = Field(
         True, description="refine the agent's estimate with ICP (PRANet-v2): point-to-plane, then point-to-point"
     )
+    robust_icp: bool = Field(
+        True,
+        description="with icp, on sparse clouds (a few hundred or thousand points over the object): weigh the "
+        "point-to-plane matches by Tukey's biweight, so that points beyond the overlap do not pull the result; "
+        "false: least squares (the paper's PRANet-v2)",
+    )
     policy: Literal["deterministic", "stoch1", "stoch2"] = Field(
         "deterministic", description="action choice: argmax, or one of the paper's stochastic policies"
     )
@@ -132,8 +138,9 @@ class RegisterRequest(_Strict):
     )
     rescue: bool = Field(
         True,
-        description="with icp: when the result is still 'suspect', try a wide-window ICP from the input pose, then "
-        "the coarse phase again from six starts 30° around the best estimate; the most confident result is kept",
+        description="with icp: when the result is still 'suspect', try the coarse phase again from six starts 30° "
+        "around the best estimate, on sparse clouds ICP from the best estimate shifted along each axis, and a "
+        "wide-window ICP from the input pose; the most confident result is kept",
     )
     global_match: bool = Field(
         True,
@@ -148,8 +155,9 @@ class RegisterRequest(_Strict):
     )
     polish: bool = Field(
         True,
-        description="with icp: refine the winning result once more with generalized ICP where the surface is smooth "
-        "at its resolution (dense range scans)",
+        description="with icp: refine the winning result once more: with generalized ICP where the surface is "
+        "smooth at its resolution (dense range scans), with symmetric robust point-to-point ICP on sparse samples "
+        "that overlap in part",
     )
     return_trajectory: bool = Field(True, description="include the agent's transform after every step")
     init: Literal["identity", "global"] = Field(
@@ -232,7 +240,7 @@ class RegisterResponse(BaseModel):
         "is still doubtful after the first ICP iterations waits behind the global match and is listed only if it "
         "was refined after all",
     )
-    rescued: Literal["wide_icp", "restarts"] | None = Field(
+    rescued: Literal["wide_icp", "restarts", "shifted_icp"] | None = Field(
         None,
         description="which rescue won over the agent's result (null: none ran or none was more confident); with "
         "'restarts' the trajectory and initial_transform are the winning restart's",
@@ -240,7 +248,8 @@ class RegisterResponse(BaseModel):
     candidate: CandidateName = Field(
         "agent",
         description="which candidate won: 'agent' (the agent's estimate, refined by ICP), 'global_match' (the "
-        "classical global match, for any initial pose, refined by ICP), 'restarts' or 'wide_icp' (the rescues)",
+        "classical global match, for any initial pose, refined by ICP), 'restarts', 'wide_icp' or 'shifted_icp' (the "
+        "rescues; 'shifted_icp': ICP from the best estimate moved along an axis, on sparse clouds)",
     )
     candidates: dict[str, float] = Field(
         default_factory=dict, description="every candidate tried this request -> its best confidence"

@@ -19,7 +19,7 @@ from pranet.core.actions import DEFAULT_SCHEDULE, ActionTable, build_action_tabl
 from pranet.core.metrics import isotropic_errors
 from pranet.core.preprocess import fit_normalization
 from pranet.core.reward import true_rewards
-from pranet.core.se3 import make_transform, rotation_angle
+from pranet.core.se3 import apply_transform, make_transform, rotation_angle
 
 
 class RangeLimitedOracle:
@@ -107,3 +107,26 @@ def unit_truth(src, tgt, T):
     from pranet.core.preprocess import fit_normalization
 
     return fit_normalization(src, tgt).transform_to_unit(T)
+
+
+def turned(angle_deg: float, axis, t) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64)
+    return make_transform(Rotation.from_rotvec(np.deg2rad(angle_deg) * axis / np.linalg.norm(axis)).as_matrix(), t)
+
+
+def sparse_partial_pair(seed: int):
+    """A bumpy ellipsoid sampled twice (512 points each, noise sigma 0.01), each view keeping the 70 % of its points
+    lowest along a random direction, the target turned 30° and shifted: ModelNet40's partial setting."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((4096, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    r = 1 + 0.15 * np.sin(3 * u[:, 0]) * np.cos(2 * u[:, 1]) + 0.1 * np.sin(4 * u[:, 2])
+    shape = u * r[:, None] * [0.8, 0.55, 0.35]
+
+    def view() -> np.ndarray:
+        points = shape[rng.choice(4096, 512, replace=False)] + rng.normal(0, 0.01, (512, 3))
+        return points[np.argsort(points @ rng.normal(size=3))[: int(0.7 * 512)]]
+
+    source, target = view(), view()
+    T = turned(30.0, rng.normal(size=3), rng.uniform(-0.1, 0.1, 3))
+    return source, apply_transform(T, target), T

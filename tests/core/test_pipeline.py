@@ -8,6 +8,8 @@ from oracle_scorer import (
     asymmetric_cloud,
     rotated_problem,
     snapping_icp,
+    sparse_partial_pair,
+    turned,
     unit_truth,
 )
 from scipy.spatial.transform import Rotation
@@ -216,12 +218,14 @@ def test_timing_stages_are_non_negative_and_add_up_to_the_total():
 
 
 def test_the_polish_refines_the_winner_and_is_dropped_when_it_makes_it_worse():
-    """``polish`` runs once, on the winner; a polish that lands on the truth is kept, one that throws the result off
-    (less confident, no longer converged) is dropped."""
-    src, tgt, T = rotated_problem(40.0)
+    """On dense clouds ``polish`` runs once, on the winner; a polish that lands on the truth is kept, one that throws
+    the result off (less confident, no longer converged) is dropped."""
+    _, _, T = rotated_problem(40.0)
+    src = asymmetric_cloud(np.random.default_rng(0), 20000)
+    tgt = src @ T[:3, :3].T + T[:3, 3]
     truth = unit_truth(src, tgt, T)
     off = truth.copy()
-    off[:3, 3] += 0.01  # an ICP that stops a little short: still converged, not exact
+    off[:3, 3] += 0.002  # an ICP that stops a little short: still converged, not exact
     short_icp = lambda s, t, init, res=None: IcpResult(off.copy(), 1.0, 0.0)  # noqa: E731
     polished = []
 
@@ -559,3 +563,75 @@ def test_an_estimate_offered_again_is_not_refined_again():
     assert ctx.tried == {"agent": first.confidence.score, "restarts": first.confidence.score}
     ctx.offer("agent", unit_truth(src, tgt, T))
     assert len(refined) == 2
+
+
+def test_shifted_starts_rescue_an_estimate_whose_translation_is_out_of_icp_reach():
+    """The truth is a shift of 0.3 (unit frame) along x; the agent takes no step, and the stand-in ICP reaches the
+    truth only from within 0.1 of its translation. On a sparse cloud the rescue's shifted starts (0.15 and 0.3 along
+    each axis) find it; on a dense one they do not run; without them the result stays suspect."""
+    from pranet.core.preprocess import fit_normalization
+    from pranet.core.se3 import make_transform
+
+    def problem(n_points: int):
+        src = asymmetric_cloud(np.random.default_rng(0), n_points)
+        scale = fit_normalization(src, src).scale
+        T = make_transform(np.eye(3), [0.3 / scale, 0.0, 0.0])
+        return src, src + T[:3, 3], T
+
+    def translation_reach_icp(truth):
+        def icp(source, target, init, resolution=None, proceed=None):
+            close = np.linalg.norm(np.asarray(init)[:3, 3] - truth[:3, 3]) < 0.1
+            return IcpResult((truth if close else np.asarray(init)).copy(), 1.0 if close else 0.0, 0.0)
+
+        return icp
+
+    still = RegistrationConfig(schedule=(0, 0), rescue_shifts=(0.15, 0.3))
+    for n_points, shifted in ((300, True), (20000, False)):
+        src, tgt, T = problem(n_points)
+        icp = translation_reach_icp(unit_truth(src, tgt, T))
+        reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), still, icp=icp)
+        assert (reg.candidate == "shifted_icp") is shifted and (reg.rescued == "shifted_icp") is shifted
+        assert (isotropic_errors(reg.T_target_source, T)[1] < 1e-9) is shifted
+        assert reg.confidence.status == ("converged" if shifted else "suspect")
+    src, tgt, T = problem(300)
+    icp = translation_reach_icp(unit_truth(src, tgt, T))
+    plain = register(
+        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), still.with_(rescue_shifts=()), icp=icp
+    )
+    assert plain.confidence.status == "suspect" and plain.candidate == "agent"
+
+
+def test_sparse_partial_pairs_get_the_robust_finish_and_whole_ones_do_not():
+    """A stand-in ICP that stops 2° short of the truth: on a sparse partial pair the finish (symmetric robust
+    point-to-point) takes the winner nearer the truth; on the same shape with whole overlap it does not run, and
+    the result is the ICP's."""
+    from pranet.core.se3 import apply_transform
+
+    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), polish=True)
+
+    def short_icp_for(src, tgt, T):
+        short = turned(2.0, [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]) @ unit_truth(src, tgt, T)
+        return lambda s, t, init, res=None, proceed=None: IcpResult(short.copy(), 1.0, 0.0)
+
+    src, tgt, T = sparse_partial_pair(0)
+    reg = register(
+        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp_for(src, tgt, T)
+    )
+    assert reg.confidence.overlap < 0.98
+    assert isotropic_errors(reg.T_target_source, T)[0] < 1.0 and reg.timing_ms["polish"] > 0
+    without = register(
+        src,
+        tgt,
+        RangeLimitedOracle(src, tgt, T),
+        np.random.default_rng(0),
+        config.with_(polish=False),
+        icp=short_icp_for(src, tgt, T),
+    )
+    assert isotropic_errors(without.T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)
+
+    whole = asymmetric_cloud(np.random.default_rng(3))
+    whole_tgt = apply_transform(T, whole)
+    icp = short_icp_for(whole, whole_tgt, T)
+    reg = register(whole, whole_tgt, RangeLimitedOracle(whole, whole_tgt, T), np.random.default_rng(0), config, icp=icp)
+    assert reg.confidence.overlap >= 0.98
+    assert isotropic_errors(reg.T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)

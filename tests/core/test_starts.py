@@ -2,10 +2,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from pranet.core.se3 import make_transform
 from pranet.core.starts import (
     MAX_STARTS,
     geodesic_distances,
     octahedral_group,
+    shifted_transforms,
     start_rotations,
     start_transforms,
 )
@@ -77,3 +79,21 @@ def test_restart_transforms_turn_the_estimate_about_the_moved_centroid():
     for k in range(6):
         np.testing.assert_allclose(out[k][:3, :3], Q[k] @ T[:3, :3], atol=1e-12)
         np.testing.assert_allclose(out[k][:3, :3] @ m + out[k][:3, 3], T[:3, :3] @ m + T[:3, 3], atol=1e-12)
+
+
+def test_shifted_transforms_move_the_estimate_along_each_axis_nearest_first():
+    T = make_transform(Rotation.from_rotvec([0.2, -0.1, 0.4]).as_matrix(), [1.0, 2.0, 3.0])
+    moved = shifted_transforms(T, [0.1, 0.3])
+    assert moved.shape == (12, 4, 4)
+    np.testing.assert_array_equal(moved[:, :3, :3], np.broadcast_to(T[:3, :3], (12, 3, 3)))
+    offsets = moved[:, :3, 3] - T[:3, 3]
+    np.testing.assert_allclose(np.abs(offsets).sum(axis=1), [0.1] * 6 + [0.3] * 6)
+    assert {tuple(np.round(o, 6)) for o in offsets[:6]} == {
+        (0.1, 0, 0),
+        (-0.1, 0, 0),
+        (0, 0.1, 0),
+        (0, -0.1, 0),
+        (0, 0, 0.1),
+        (0, 0, -0.1),
+    }
+    assert shifted_transforms(T, []).shape == (0, 4, 4)

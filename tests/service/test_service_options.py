@@ -153,3 +153,20 @@ def test_the_default_request_reaches_a_150_degree_rotation_through_the_global_ma
     again = post(http, **body)  # the same answer, to Open3D's multithreaded summation order
     np.testing.assert_allclose(again["transform"], out["transform"], atol=1e-9)
     assert again["candidate"] == out["candidate"]
+
+
+def test_robust_icp_and_rescue_map_onto_the_kernel_and_the_shifts() -> None:
+    """``robust_icp: false`` is least squares (the paper's v2), ``rescue: false`` drops the shifted starts too."""
+    from pranet.core.registration_config import ICP_KERNEL, RESCUE_SHIFTS
+    from pranet.service.registration import request_config
+    from pranet.service.schemas import RegisterRequest
+
+    cloud = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+    def config(**options):
+        return request_config(RegisterRequest(source=cloud, target=cloud, **options), 2)
+
+    default = config()
+    assert default.icp_kernel == ICP_KERNEL and default.rescue_shifts == RESCUE_SHIFTS
+    assert config(robust_icp=False).icp_kernel is None and config(icp=False).icp_kernel is None
+    assert config(rescue=False).rescue_shifts == () and config(icp=False).rescue_shifts == ()

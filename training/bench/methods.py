@@ -97,8 +97,8 @@ def baseline_method(fn: Callable[[Array, Array, np.random.Generator], Array]) ->
 def request_body(
     pair: Pair, seed: int, icp: bool = True, steps: Sequence[int] | None = None, adaptive: bool = False
 ) -> bytes:
-    """``adaptive``: the service's default request (exit checks, global match, rescues, the walk, the polish); else
-    the paper's v2: a network call for every step, then ICP, nothing else."""
+    """``adaptive``: the service's default request (exit checks, global match, rescues, the walk, the polish, the
+    robust ICP); else the paper's v2: a network call for every step, then least-squares ICP, nothing else."""
     from pranet.core.registration_config import SERVICE_DEFAULT
     from pranet.core.wire import encode_cloud
 
@@ -113,6 +113,7 @@ def request_body(
         "global_match": adaptive,
         "walk": adaptive,
         "polish": adaptive,
+        "robust_icp": adaptive,
     }
     if steps is not None:
         body["steps"] = list(steps)
