@@ -337,7 +337,7 @@ def register(
     timer = StageTimer(STAGES)
     # 1. Prepare: validate, cap, unit frame, resolution, resample.
     with timer.stage("preprocess"):
-        clouds = prepare(source, target, scorer.n_points, rng)
+        clouds = prepare(source, target, config.agent_points or scorer.n_points, rng)
         estimator = ConfidenceEstimator(clouds.src_index, clouds.tgt_index, clouds.resolution, config.threshold)
     ctx = RegistrationContext(
         clouds=clouds,

@@ -132,7 +132,8 @@ def request_config(
     ``icp: false`` is the paper's PRANet-v1 (no ICP, so no exit checks or rescues); exit checks apply to the
     identity start only; ``rescue: false`` turns the rescues off, ``global_match: false`` the classical global
     candidate, ``walk: false`` the walk (a network call per step, as the paper), ``polish: false`` the polish,
-    ``robust_icp: false`` the ICP's kernel on sparse clouds.
+    ``robust_icp: false`` the ICP's kernel on sparse clouds, ``agent_points: null`` the agent's points (the model's
+    own then).
     """
     if req.steps is not None and len(req.steps) != n_scales:
         raise RequestError(422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts")
@@ -147,6 +148,7 @@ def request_config(
         global_match=base.global_match and refine and req.global_match,
         init=req.init,
         n_starts=req.starts,
+        agent_points=req.agent_points,
         policy=req.policy,
         early_stop=req.early_stop,
         schedule=tuple(req.steps) if req.steps is not None else None,

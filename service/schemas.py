@@ -11,7 +11,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag
 
 from pranet.core.confidence import CERTIFYING_MATCHES
-from pranet.core.registration_config import SERVICE_DEFAULT
+from pranet.core.registration_config import MAX_AGENT_POINTS, MIN_AGENT_POINTS, SERVICE_DEFAULT
 from pranet.core.registration_types import CandidateName
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
 from pranet.core.wire import BYTES_PER_POINT, ENCODING, encoded_length
@@ -165,6 +165,11 @@ class RegisterRequest(_Strict):
         description="where the agent starts: 'identity' (the input pose; the model knows rotations up to 60°) or "
         "'global' (from `starts` well-spread rotations at once, for any initial rotation; the most confident "
         "results are refined by ICP and the best is returned; about `starts` times the agent's work)",
+    )
+    agent_points: json_int(ge=MIN_AGENT_POINTS, le=MAX_AGENT_POINTS) | None = Field(
+        SERVICE_DEFAULT.agent_points,
+        description="points per cloud the agent's network sees (resampled; ICP and the confidence use every point); "
+        "null: the model's own (the shipped model was trained on 256, which the paper's configurations use)",
     )
     starts: json_int(ge=1, le=MAX_STARTS) = Field(
         DEFAULT_STARTS,

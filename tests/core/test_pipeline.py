@@ -635,3 +635,25 @@ def test_sparse_partial_pairs_get_the_robust_finish_and_whole_ones_do_not():
     reg = register(whole, whole_tgt, RangeLimitedOracle(whole, whole_tgt, T), np.random.default_rng(0), config, icp=icp)
     assert reg.confidence.overlap >= 0.98
     assert isotropic_errors(reg.T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_the_agent_sees_the_configs_number_of_points_or_the_models():
+    """``agent_points`` resamples both clouds to that many points for the agent (the service's 128); ``None``: the
+    model's ``n_points``. Out-of-range counts are refused."""
+    src, tgt, T = rotated_problem(20.0)
+    seen = []
+
+    class Recording(RangeLimitedOracle):
+        def score_fn(self, target):
+            seen.append(len(target))
+            return lambda source, _target: (seen.append(len(source)), -np.ones(len(self.table)))[1]
+
+    scorer = Recording(src, tgt, T)
+    register(src, tgt, scorer, np.random.default_rng(0), RegistrationConfig(agent_points=64))
+    assert set(seen) == {64}
+    seen.clear()
+    register(src, tgt, scorer, np.random.default_rng(0))
+    assert set(seen) == {scorer.n_points} == {300}
+    for bad in (0, 8, 257, 10**6):
+        with pytest.raises(ValueError, match="agent_points"):
+            RegistrationConfig(agent_points=bad)

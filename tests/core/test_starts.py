@@ -83,7 +83,7 @@ def test_restart_transforms_turn_the_estimate_about_the_moved_centroid():
 
 def test_shifted_transforms_move_the_estimate_along_each_axis_nearest_first():
     T = make_transform(Rotation.from_rotvec([0.2, -0.1, 0.4]).as_matrix(), [1.0, 2.0, 3.0])
-    moved = shifted_transforms(T, [0.1, 0.3])
+    moved = shifted_transforms(T, [0.1, 0.3])  # any distances
     assert moved.shape == (12, 4, 4)
     np.testing.assert_array_equal(moved[:, :3, :3], np.broadcast_to(T[:3, :3], (12, 3, 3)))
     offsets = moved[:, :3, 3] - T[:3, 3]

@@ -38,6 +38,7 @@ def test_every_result_carries_confidence_and_status(http: httpx.Client) -> None:
 def test_global_mode_over_http(http: httpx.Client) -> None:
     source, target, _ = synthetic_pair(n=300)
     body = {"source": b64(source), "target": b64(target), "init": "global", "starts": 4, "steps": [1, 1], "walk": False}
+    body["global_match"] = False  # the agent's runs only: the winner's trajectory is the schedule's two steps
     r = http.post("/register", json=body)
     assert r.status_code == 200, r.text
     out = r.json()

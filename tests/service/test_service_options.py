@@ -43,6 +43,7 @@ def test_seed_and_policy_reach_the_agent(http: httpx.Client) -> None:
     source, target, _ = moved_pair(20.0)
     common = {"source": b64(source), "target": b64(target), "steps": [10, 10], "icp": False, "rescue": False}
     common["walk"] = False  # the paper's protocol: every step scored by the network, none ends a scale
+    common["agent_points"] = None  # the model's own N, the clouds' size: the resampling only permutes
     a = post(http, **common, policy="stoch2", seed=1)
     again = post(http, **common, policy="stoch2", seed=1)
     other = post(http, **common, policy="stoch2", seed=2)
@@ -122,7 +123,8 @@ def test_the_restarts_rescue_runs_for_a_default_request() -> None:
     stays = snapping_icp(unit_truth(src, tgt, T), 0.0)  # the wide rescue ICP: returns its start
 
     def run(**options) -> dict:
-        body = json.dumps({"source": src.tolist(), "target": tgt.tolist(), "early_stop": True, **options}).encode()
+        body = {"source": src.tolist(), "target": tgt.tolist(), "early_stop": True, "agent_points": None, **options}
+        body = json.dumps(body).encode()  # agent_points: the stand-in knows clouds of its own 300 points
         oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
         info = {"name": "oracle", "version": "0", "sha256": "0" * 64}
         # The engine's ICP functions: the snapping stand-in for the refinement, the one that stays for the wide pass;
@@ -155,9 +157,10 @@ def test_the_default_request_reaches_a_150_degree_rotation_through_the_global_ma
     assert again["candidate"] == out["candidate"]
 
 
-def test_robust_icp_and_rescue_map_onto_the_kernel_and_the_shifts() -> None:
-    """``robust_icp: false`` is least squares (the paper's v2), ``rescue: false`` drops the shifted starts too."""
-    from pranet.core.registration_config import ICP_KERNEL, RESCUE_SHIFTS
+def test_robust_icp_rescue_and_agent_points_map_onto_the_config() -> None:
+    """``robust_icp: false`` is least squares (the paper's v2), ``rescue: false`` drops the shifted starts too,
+    ``agent_points: null`` is the model's own number of points."""
+    from pranet.core.registration_config import ICP_KERNEL, RESCUE_SHIFTS, SERVICE_AGENT_POINTS
     from pranet.service.registration import request_config
     from pranet.service.schemas import RegisterRequest
 
@@ -170,3 +173,5 @@ def test_robust_icp_and_rescue_map_onto_the_kernel_and_the_shifts() -> None:
     assert default.icp_kernel == ICP_KERNEL and default.rescue_shifts == RESCUE_SHIFTS
     assert config(robust_icp=False).icp_kernel is None and config(icp=False).icp_kernel is None
     assert config(rescue=False).rescue_shifts == () and config(icp=False).rescue_shifts == ()
+    assert default.agent_points == SERVICE_AGENT_POINTS and config(agent_points=None).agent_points is None
+    assert config(agent_points=256).agent_points == 256

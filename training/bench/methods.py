@@ -115,6 +115,8 @@ def request_body(
         "polish": adaptive,
         "robust_icp": adaptive,
     }
+    if not adaptive:
+        body["agent_points"] = None  # the model's own, as the paper's v2 in process
     if steps is not None:
         body["steps"] = list(steps)
     return json.dumps(body).encode()
