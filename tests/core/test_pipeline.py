@@ -609,30 +609,20 @@ def test_sparse_partial_pairs_get_the_robust_finish_and_whole_ones_do_not():
 
     config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), polish=True)
 
-    def short_icp_for(src, tgt, T):
+    def run(src, tgt, T, polish=True):
         short = turned(2.0, [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]) @ unit_truth(src, tgt, T)
-        return lambda s, t, init, res=None, proceed=None: IcpResult(short.copy(), 1.0, 0.0)
+        icp = lambda s, t, init, res=None, proceed=None: IcpResult(short.copy(), 1.0, 0.0)  # noqa: E731
+        oracle = RangeLimitedOracle(src, tgt, T)
+        return register(src, tgt, oracle, np.random.default_rng(0), config.with_(polish=polish), icp=icp)
 
     src, tgt, T = sparse_partial_pair(0)
-    reg = register(
-        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp_for(src, tgt, T)
-    )
+    reg = run(src, tgt, T)
     assert reg.confidence.overlap < 0.98
     assert isotropic_errors(reg.T_target_source, T)[0] < 1.0 and reg.timing_ms["polish"] > 0
-    without = register(
-        src,
-        tgt,
-        RangeLimitedOracle(src, tgt, T),
-        np.random.default_rng(0),
-        config.with_(polish=False),
-        icp=short_icp_for(src, tgt, T),
-    )
-    assert isotropic_errors(without.T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)
+    assert isotropic_errors(run(src, tgt, T, polish=False).T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)
 
     whole = asymmetric_cloud(np.random.default_rng(3))
-    whole_tgt = apply_transform(T, whole)
-    icp = short_icp_for(whole, whole_tgt, T)
-    reg = register(whole, whole_tgt, RangeLimitedOracle(whole, whole_tgt, T), np.random.default_rng(0), config, icp=icp)
+    reg = run(whole, apply_transform(T, whole), T)
     assert reg.confidence.overlap >= 0.98
     assert isotropic_errors(reg.T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)
 
