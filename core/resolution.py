@@ -48,9 +48,14 @@ def median_spacing(points: npt.ArrayLike | PointIndex, probes: int = SPACING_PRO
     """
     index = points if isinstance(points, PointIndex) else PointIndex(points)
     probe = subsample(index.points, probes, seed=seed)  # (P, 3)
-    d, _ = index.neighbours(probe, DUPLICATE_NEIGHBOURS)  # (P, k), nearest first
-    d = np.where(d > 0, d, np.inf).min(axis=1)
-    positive = d[np.isfinite(d)]
+    # Two neighbours (itself and the next) answer every probe that is not repeated; only the repeated ones ask for
+    # more: the same spacing at a third of the query's cost on a registration's critical path.
+    d = index.neighbours(probe, 2)[0][:, -1]
+    repeated = d <= 0
+    if repeated.any():
+        more, _ = index.neighbours(probe[repeated], DUPLICATE_NEIGHBOURS)  # (R, k), nearest first
+        d[repeated] = np.where(more > 0, more, np.inf).min(axis=1)
+    positive = d[np.isfinite(d) & (d > 0)]
     return float(np.median(positive)) if len(positive) else 0.0
 
 
@@ -70,9 +75,23 @@ def flatness(points: npt.ArrayLike | PointIndex, spacing: float, probes: int = F
     _, nearest = index.neighbours(subsample(p, probes, seed=seed), FLATNESS_NEIGHBOURS)
     neighbourhoods = p[nearest]  # (P, k, 3)
     centred = neighbourhoods - neighbourhoods.mean(axis=1, keepdims=True)
-    covariance = np.einsum("pki,pkj->pij", centred, centred) / FLATNESS_NEIGHBOURS  # (P, 3, 3)
-    smallest = np.linalg.eigvalsh(covariance)[:, 0]
-    return float(np.median(np.sqrt(np.maximum(smallest, 0.0)))) / spacing
+    covariance = np.matmul(centred.transpose(0, 2, 1), centred) / FLATNESS_NEIGHBOURS  # (P, 3, 3)
+    return float(np.median(np.sqrt(smallest_eigenvalues(covariance)))) / spacing
+
+
+def smallest_eigenvalues(covariance: Array) -> Array:
+    """The smallest eigenvalue (clipped at 0) of each symmetric ``(P, 3, 3)`` matrix, by the trigonometric solution of
+    the characteristic cubic: vectorised, where LAPACK's batched ``eigvalsh`` costs a call per matrix."""
+    c = np.asarray(covariance, dtype=np.float64)
+    q = np.trace(c, axis1=1, axis2=2) / 3.0
+    off = c[:, 0, 1] ** 2 + c[:, 0, 2] ** 2 + c[:, 1, 2] ** 2
+    diag = (c[:, 0, 0] - q) ** 2 + (c[:, 1, 1] - q) ** 2 + (c[:, 2, 2] - q) ** 2
+    p = np.sqrt((diag + 2.0 * off) / 6.0)
+    safe = np.where(p > 0, p, 1.0)
+    b = (c - q[:, None, None] * np.eye(3)) / safe[:, None, None]
+    phi = np.arccos(np.clip(np.linalg.det(b) / 2.0, -1.0, 1.0)) / 3.0
+    smallest = np.where(p > 0, q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0), q)
+    return np.maximum(smallest, 0.0)
 
 
 def cloud_radius(points: npt.ArrayLike) -> float:

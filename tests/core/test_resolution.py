@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pranet.core.resolution import Resolution, flatness, measure_resolution, median_spacing
+from pranet.core.resolution import Resolution, flatness, measure_resolution, median_spacing, smallest_eigenvalues
 
 
 def grid(step: float, n: int = 60) -> np.ndarray:
@@ -21,6 +21,24 @@ def test_the_spacing_of_a_lattice_is_its_step_in_any_units():
 def test_duplicated_points_do_not_hide_the_spacing():
     g = grid(0.01)
     assert median_spacing(np.concatenate([g, g])) == pytest.approx(0.01)
+
+
+def test_a_partly_duplicated_cloud_keeps_its_spacing_where_some_points_repeat_more_than_once():
+    g = grid(0.01)
+    assert median_spacing(np.concatenate([g, g[:100], g[:100], g[:100]])) == pytest.approx(0.01)
+
+
+def test_the_smallest_eigenvalues_are_lapacks():
+    """Against ``numpy.linalg.eigvalsh`` on covariances of every rank (3, 2, 1, 0) and a repeated eigenvalue."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(400, 3, 3))
+    c = a @ a.transpose(0, 2, 1)
+    c[1::4] = a[1::4, :, :2] @ a[1::4, :, :2].transpose(0, 2, 1)  # rank 2: smallest 0
+    c[2::4] = a[2::4, :, :1] @ a[2::4, :, :1].transpose(0, 2, 1)  # rank 1
+    c[3::8] = 0.0
+    c[7::8] = np.eye(3) * 2.0
+    expected = np.maximum(np.linalg.eigvalsh(c)[:, 0], 0.0)
+    np.testing.assert_allclose(smallest_eigenvalues(c), expected, atol=1e-9 * np.abs(c).max())
 
 
 def test_the_pair_takes_the_coarser_spacing_and_scales_with_the_units():
