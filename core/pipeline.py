@@ -35,6 +35,7 @@ from pranet.core.registration_context import RegistrationContext, Scorer, prepar
 from pranet.core.registration_types import (
     AGENT,
     GLOBAL_MATCH,
+    GLOBAL_STARTS,
     RESTARTS,
     SHIFTED_ICP,
     WIDE_ICP,
@@ -44,6 +45,7 @@ from pranet.core.registration_types import (
     Registration,
 )
 from pranet.core.robust_icp import symmetric_robust_icp
+from pranet.core.se3 import Array
 from pranet.core.stage_timer import StageTimer
 from pranet.core.starts import (
     local_rotations,
@@ -170,14 +172,24 @@ def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -
     c, config = ctx.clouds, ctx.config
     ctx.starts = start_transforms(start_rotations(config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
     segments = split_schedule(ctx.schedule, (ctx.schedule[0],))
+    ctx.agents, ctx.start_scores = from_starts(ctx, score_fn, ctx.starts, segments)
+    for b in _top(ctx.start_scores, config.refine_top if ctx.icp is not None else 1):
+        ctx.offer(AGENT, ctx.agents[b].transform, agent_index=b)
+
+
+def from_starts(
+    ctx: RegistrationContext, score_fn: BatchScoreFn, starts: Array, segments: Sequence[tuple[int, ...]]
+) -> tuple[list[AgentResult], list[float]]:
+    """The agent from every start at once through the first segment of the schedule, then through the rest from the
+    ``refine_top`` most confident only; each run and its quick confidence."""
+    c, config = ctx.clouds, ctx.config
     with ctx.timer.stage("agent_steps"):
         agents = run_agent_batch(
-            c.src_n, c.tgt_n, score_fn, ctx.scorer.table, ctx.starts, segments[0], **ctx.loop(score_fn)
+            c.src_n, c.tgt_n, score_fn, ctx.scorer.table, starts, segments[0], **ctx.loop(score_fn)
         )
-    ctx.agents = agents
-    ctx.start_scores = ctx.quick_scores(agents)
-    keep = _top(ctx.start_scores, config.refine_top)
+    scores = ctx.quick_scores(agents)
     if len(segments) > 1:
+        keep = _top(scores, config.refine_top)
         pose = np.stack([agents[b].transform for b in keep])
         with ctx.timer.stage("agent_steps"):
             more = run_agent_batch(
@@ -187,9 +199,8 @@ def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -
             extend(agents[b], part)
         # Only the starts that went on moved: the others keep their coarse-phase score.
         for b, score in zip(keep, ctx.quick_scores([agents[b] for b in keep]), strict=True):
-            ctx.start_scores[b] = score
-    for b in _top(ctx.start_scores, config.refine_top if ctx.icp is not None else 1):
-        ctx.offer(AGENT, agents[b].transform, agent_index=b)
+            scores[b] = score
+    return agents, scores
 
 
 def global_match_after(ctx: RegistrationContext) -> int | None:
@@ -225,28 +236,30 @@ def global_match(ctx: RegistrationContext) -> None:
 
 
 def rescue(ctx: RegistrationContext) -> None:
-    """Rescues of a still unconfident result (beyond the paper): the agent's coarse phase again from six starts
-    30° around the agent's best estimate (batched; the ``refine_top`` most promising are refined), on sparse clouds
-    ICP from the best estimate shifted along each axis (``config.rescue_shifts``, until one is confident), and a
-    wide-window ICP from the input pose. The restarts and the wide ICP both run: a wide ICP may be confidently
-    wrong. The restarts centre on the agent's own estimate, not on a global match that scored higher: on sparse
-    partial shapes that one is often far off, and the agent's is near enough for a 30° restart to reach the truth
-    (ModelNet40 partial: docs/DESIGN.md). Not on dense clouds after the global match (``restarts_help``)."""
+    """Rescues of a still unconfident result (beyond the paper), cheapest first: the agent's coarse phase again from
+    six starts 30° around the agent's best estimate (batched; the ``refine_top`` most promising are refined), on
+    sparse clouds ICP from the best estimate shifted along each axis (``config.rescue_shifts``, until one is
+    confident), a wide-window ICP from the input pose, and last, on sparse clouds, the agent's coarse phase from the
+    global mode's well-spread starts (``config.rescue_global_starts``). The restarts and the wide ICP both run: a wide
+    ICP may be confidently wrong. The restarts centre on the agent's own estimate, not on a global match that scored
+    higher: on sparse partial shapes that one is often far off, and the agent's is near enough for a 30° restart to
+    reach the truth (ModelNet40 partial: docs/DESIGN.md). Not on dense clouds after the global match
+    (``restarts_help``), which has searched every rotation there."""
     c, config = ctx.clouds, ctx.config
+    batch: BatchScoreFn | None = None  # the target embedded once for both batched rescues
+
+    def batched() -> BatchScoreFn:
+        nonlocal batch
+        if batch is None:
+            with ctx.timer.stage("target_embedding"):
+                batch = batch_score_fn(ctx.scorer, c.tgt_n)
+                ctx.scorers.append(batch)
+        return batch
+
     centre = ctx.best_agent or ctx.best
     if config.rescue_restarts and centre is not None and restarts_help(ctx):
         restarts = restart_transforms(centre.T_unit, c.src_n.mean(axis=0), local_rotations())
-        coarse = (ctx.schedule[0],) + (0,) * (len(ctx.schedule) - 1)
-        with ctx.timer.stage("target_embedding"):
-            batch = batch_score_fn(ctx.scorer, c.tgt_n)
-            ctx.scorers.append(batch)
-        with ctx.timer.stage("agent_steps"):
-            more = run_agent_batch(c.src_n, c.tgt_n, batch, ctx.scorer.table, restarts, coarse, **ctx.loop(batch))
-        first = len(ctx.agents)
-        ctx.agents.extend(more)
-        ctx.starts = np.concatenate([ctx.starts, restarts])
-        for k in _top(ctx.quick_scores(more), config.refine_top):
-            ctx.offer(RESTARTS, more[k].transform, agent_index=first + k)
+        offer_from_starts(ctx, batched(), restarts, RESTARTS, until_confident=False)
     if config.rescue_shifts and ctx.best is not None and not ctx.confident and not c.resolution.dense:
         for T in shifted_transforms(ctx.best.T_unit, config.rescue_shifts):
             ctx.offer(SHIFTED_ICP, T)
@@ -256,6 +269,25 @@ def rescue(ctx: RegistrationContext) -> None:
         with ctx.timer.stage("icp"):
             wide = ctx.wide_icp(c.src_unit, c.tgt_unit, np.eye(4), c.resolution)
         ctx.offer(WIDE_ICP, wide.transform)
+    if config.rescue_global_starts and not ctx.confident and not c.resolution.dense:
+        starts = start_transforms(start_rotations(config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
+        offer_from_starts(ctx, batched(), starts, GLOBAL_STARTS, until_confident=True)
+
+
+def offer_from_starts(
+    ctx: RegistrationContext, score_fn: BatchScoreFn, starts: Array, name: str, until_confident: bool
+) -> None:
+    """The agent's coarse phase from ``starts`` (batched), its ``refine_top`` most promising runs offered as ``name``
+    (best first; with ``until_confident``, none after a confident one)."""
+    coarse = (ctx.schedule[0],) + (0,) * (len(ctx.schedule) - 1)
+    more, scores = from_starts(ctx, score_fn, starts, [coarse])
+    first = len(ctx.agents)
+    ctx.agents.extend(more)
+    ctx.starts = np.concatenate([ctx.starts, starts])
+    for k in _top(scores, ctx.config.refine_top):
+        ctx.offer(name, more[k].transform, agent_index=first + k)
+        if until_confident and ctx.confident:
+            return
 
 
 def restarts_help(ctx: RegistrationContext) -> bool:

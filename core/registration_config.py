@@ -106,9 +106,11 @@ class RegistrationConfig:
     result is confident (identity mode; with ``global_match``, it runs after the last check of the coarse phase
     unless a check before was ``sure``); ``rescue_window`` (or ``None``) runs a wide ICP from the input pose when
     the result stays below ``threshold``, ``rescue_restarts`` reruns the coarse phase from six starts 30°
-    around the best estimate, and ``rescue_shifts`` refines the best estimate moved by each distance along each
-    axis (sparse clouds). ``init="global"`` starts the agent from ``n_starts`` rotations and refines the
-    ``refine_top`` most confident. ``schedule``: steps per step-size scale (``None`` = the model's).
+    around the best estimate, ``rescue_shifts`` refines the best estimate moved by each distance along each
+    axis (sparse clouds), and last, ``rescue_global_starts`` runs the agent's coarse phase from the ``n_starts``
+    rotations of the global mode and refines the ``refine_top`` most confident (sparse clouds). ``init="global"``
+    starts the agent from ``n_starts`` rotations and refines the ``refine_top`` most confident. ``schedule``: steps
+    per step-size scale (``None`` = the model's).
     ``walk_steps``: 0 = the paper's protocol, a network call per step; ``k > 0`` = walk up to ``k`` steps toward
     one estimated pose in closed form before asking the network again (``core.agent``; models with the analytic
     reward layer only, others call it every step). ``confirm_arrival``: when the walk arrives, ask the network
@@ -150,6 +152,7 @@ class RegistrationConfig:
     icp_kernel: float | None = None
     rescue_shifts: tuple[float, ...] = ()
     agent_points: int | None = None
+    rescue_global_starts: bool = False
 
     def __post_init__(self) -> None:
         check_icp_stages(self.icp_stages)
@@ -212,4 +215,5 @@ SERVICE_DEFAULT = PAPER_V2.with_(
     icp_kernel=ICP_KERNEL,
     rescue_shifts=RESCUE_SHIFTS,
     agent_points=SERVICE_AGENT_POINTS,
+    rescue_global_starts=True,
 )

@@ -25,8 +25,9 @@ GLOBAL_MATCH = "global_match"  # the classical global match (features + robust s
 RESTARTS = "restarts"  # the agent's coarse phase again from starts around the best estimate
 WIDE_ICP = "wide_icp"  # ICP with a wide window from the input pose
 SHIFTED_ICP = "shifted_icp"  # ICP from the best estimate moved along the axes (sparse clouds)
+GLOBAL_STARTS = "global_starts"  # the agent's coarse phase from the global mode's starts, the last rescue (sparse)
 # the wire's names (the response's)
-CandidateName = Literal["agent", "global_match", "restarts", "wide_icp", "shifted_icp"]
+CandidateName = Literal["agent", "global_match", "restarts", "wide_icp", "shifted_icp", "global_starts"]
 CANDIDATES: tuple[str, ...] = get_args(CandidateName)
 
 
@@ -126,4 +127,4 @@ class Registration:
     @property
     def rescued(self) -> str | None:
         """Which rescue won over the agent's result (``None``: the agent's own result won)."""
-        return self.candidate if self.candidate in (RESTARTS, WIDE_ICP, SHIFTED_ICP) else None
+        return self.candidate if self.candidate in (RESTARTS, WIDE_ICP, SHIFTED_ICP, GLOBAL_STARTS) else None

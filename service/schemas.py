@@ -139,8 +139,9 @@ class RegisterRequest(_Strict):
     rescue: bool = Field(
         True,
         description="with icp: when the result is still 'suspect', try the coarse phase again from six starts 30° "
-        "around the best estimate, on sparse clouds ICP from the best estimate shifted along each axis, and a "
-        "wide-window ICP from the input pose; the most confident result is kept",
+        "around the best estimate, on sparse clouds ICP from the best estimate shifted along each axis, a "
+        "wide-window ICP from the input pose, and last, on sparse clouds, the agent from the global mode's `starts` rotations; "
+        "the most confident result is kept",
     )
     global_match: bool = Field(
         True,
@@ -245,16 +246,17 @@ class RegisterResponse(BaseModel):
         "is still doubtful after the first ICP iterations waits behind the global match and is listed only if it "
         "was refined after all",
     )
-    rescued: Literal["wide_icp", "restarts", "shifted_icp"] | None = Field(
+    rescued: Literal["wide_icp", "restarts", "shifted_icp", "global_starts"] | None = Field(
         None,
         description="which rescue won over the agent's result (null: none ran or none was more confident); with "
-        "'restarts' the trajectory and initial_transform are the winning restart's",
+        "'restarts' or 'global_starts' the trajectory and initial_transform are the winning start's",
     )
     candidate: CandidateName = Field(
         "agent",
         description="which candidate won: 'agent' (the agent's estimate, refined by ICP), 'global_match' (the "
-        "classical global match, for any initial pose, refined by ICP), 'restarts', 'wide_icp' or 'shifted_icp' (the "
-        "rescues; 'shifted_icp': ICP from the best estimate moved along an axis, on sparse clouds)",
+        "classical global match, for any initial pose, refined by ICP), 'restarts', 'wide_icp', 'shifted_icp' or "
+        "'global_starts' (the rescues; 'shifted_icp': ICP from the best estimate moved along an axis, on sparse "
+        "clouds; 'global_starts': the agent from the global mode's starts, the last rescue on sparse clouds)",
     )
     candidates: dict[str, float] = Field(
         default_factory=dict, description="every candidate tried this request -> its best confidence"
