@@ -56,6 +56,10 @@ class NetConfig:
     # cropped-away part go to the slack. Trained with ``OptimConfig.overlap_weight`` (docs/DESIGN.md, "An overlap
     # head").
     overlap_head: bool = False
+    # RPMNet's point-pair features (a distance and three normal angles per graph edge, normals estimated from the
+    # kNN graph) added to the first EdgeConv: they do not change with the pose or with the crop's centroid, where the
+    # xyz features do (docs/DESIGN.md, "Point-pair features").
+    point_pair_features: bool = False
 
     def __post_init__(self) -> None:
         if self.matching not in ("softmax", "sinkhorn"):

@@ -28,6 +28,15 @@ NETS = {
         match_passes=3,
         overlap_head=True,
     ),
+    "with point-pair features": NetConfig(
+        n_points=128,
+        pool="maxmean",
+        correspondence=True,
+        matching="sinkhorn",
+        reward_head="analytic",
+        match_passes=3,
+        point_pair_features=True,
+    ),
 }
 
 
@@ -37,6 +46,8 @@ def exported(request, tmp_path_factory):
     table = build_action_table()
     cfg = NETS[request.param]
     net = RewardNet(cfg, table).eval()
+    if cfg.point_pair_features:  # their last layer starts at zero: give the features a say in the scores
+        torch.nn.init.normal_(net.embedding.point_pairs.net[2].weight, std=0.5)
     out = tmp_path_factory.mktemp("model")
     card = {
         "name": "test",

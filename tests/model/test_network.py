@@ -307,3 +307,61 @@ def test_the_overlap_head_takes_the_points_it_calls_unshared_out_of_the_pose():
 def test_an_overlap_head_needs_sinkhorn_matching():
     with pytest.raises(ValueError, match="overlap_head"):
         NetConfig(correspondence=True, overlap_head=True)
+
+
+def test_plane_normals_are_the_planes_normals_in_any_pose():
+    """Points on the plane z = 0.02·(noise), turned and moved at random: every point's normal is the turned z axis
+    (up to sign), as PCA of its neighbours gives it."""
+    from pranet.model.network import plane_normals
+
+    rng = np.random.default_rng(3)
+    flat = np.c_[rng.uniform(-1, 1, (200, 2)), 0.002 * rng.normal(size=200)]
+    for _ in range(3):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        pts = torch.from_numpy((flat @ q.T + rng.normal(size=3))[None]).float()
+        n = plane_normals(pts, torch.from_numpy(knn_indices(pts.numpy(), 16)))[0].numpy()
+        cos = np.abs(n @ q[:, 2])
+        assert cos.min() > 0.99, cos.min()
+
+
+def test_plane_normals_of_a_sphere_point_out():
+    from pranet.model.network import plane_normals
+
+    rng = np.random.default_rng(4)
+    v = rng.normal(size=(500, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    n = plane_normals(torch.from_numpy(v[None]).float(), torch.from_numpy(knn_indices(v[None], 12)))[0].numpy()
+    assert np.median(np.abs((n * v).sum(1))) > 0.99
+
+
+def test_point_pair_features_do_not_change_with_the_pose():
+    from pranet.model.network import point_pair_features
+
+    rng = np.random.default_rng(6)
+    pts = rng.normal(size=(1, 128, 3)) * [1.0, 0.6, 0.3]
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    moved = pts @ q.T + [0.3, -0.2, 0.5]
+    knn = torch.from_numpy(knn_indices(pts, 16))  # the graph does not change with the pose either
+    a = point_pair_features(torch.from_numpy(pts).float(), knn)
+    b = point_pair_features(torch.from_numpy(moved).float(), knn)
+    torch.testing.assert_close(a, b, atol=2e-3, rtol=0.0)
+    assert a[..., 1:].max() <= 1.0 + 1e-6 and a[..., 0].max() > 0.1  # cosines, and lengths that are not all 0
+
+
+def test_a_network_with_fresh_point_pair_features_scores_as_it_did_without():
+    """The features' last layer starts at zero: warm-started from a network without them, the new one scores the
+    same, and once that layer moves it does not."""
+    table = build_action_table()
+    torch.manual_seed(0)
+    cfg = NetConfig(n_points=64, pool="maxmean", correspondence=True, matching="sinkhorn", reward_head="analytic")
+    old = RewardNet(cfg, table).eval()
+    new = RewardNet(NetConfig(**{**cfg.to_dict(), "point_pair_features": True}), table).eval()
+    missing = new.load_state_dict(old.state_dict(), strict=False).missing_keys
+    assert missing and all(k.startswith("embedding.point_pairs.") for k in missing)
+    rng = np.random.default_rng(0)
+    src, tgt = (torch.from_numpy(rng.normal(size=(1, 64, 3)) * 0.4).float() for _ in range(2))
+    knn_s, knn_t = (torch.from_numpy(knn_indices(p.numpy(), cfg.k)) for p in (src, tgt))
+    with torch.no_grad():
+        torch.testing.assert_close(new(src, knn_s, tgt, knn_t), old(src, knn_s, tgt, knn_t))
+        torch.nn.init.normal_(new.embedding.point_pairs.net[2].weight, std=1.0)
+        assert not torch.allclose(new(src, knn_s, tgt, knn_t), old(src, knn_s, tgt, knn_t), atol=1e-3)
