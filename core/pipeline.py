@@ -239,8 +239,9 @@ def rescue(ctx: RegistrationContext) -> None:
     """Rescues of a still unconfident result (beyond the paper), cheapest first: the agent's coarse phase again from
     six starts 30° around the agent's best estimate (batched; the ``refine_top`` most promising are refined), on
     sparse clouds ICP from the best estimate shifted along each axis (``config.rescue_shifts``, until one is
-    confident), a wide-window ICP from the input pose, and last, on sparse clouds, the agent's coarse phase from the
-    global mode's well-spread starts (``config.rescue_global_starts``). The restarts and the wide ICP both run: a wide
+    confident), a wide-window ICP from the input pose, and last, on sparse clouds where the best is still far from
+    confident (under ``config.rescue_global_starts`` times the status threshold), the agent's coarse phase from the
+    global mode's well-spread starts. The restarts and the wide ICP both run: a wide
     ICP may be confidently wrong. The restarts centre on the agent's own estimate, not on a global match that scored
     higher: on sparse partial shapes that one is often far off, and the agent's is near enough for a 30° restart to
     reach the truth (ModelNet40 partial: docs/DESIGN.md). Not on dense clouds after the global match
@@ -269,9 +270,20 @@ def rescue(ctx: RegistrationContext) -> None:
         with ctx.timer.stage("icp"):
             wide = ctx.wide_icp(c.src_unit, c.tgt_unit, np.eye(4), c.resolution)
         ctx.offer(WIDE_ICP, wide.transform)
-    if config.rescue_global_starts and not ctx.confident and not c.resolution.dense:
+    if far_from_confident(ctx, config.rescue_global_starts) and not c.resolution.dense:
         starts = start_transforms(start_rotations(config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
         offer_from_starts(ctx, batched(), starts, GLOBAL_STARTS, until_confident=True)
+
+
+def far_from_confident(ctx: RegistrationContext, fraction: float | None) -> bool:
+    """Whether the best result so far scores under ``fraction`` of the status threshold (``None``: never)."""
+    best = ctx.best
+    return (
+        fraction is not None
+        and best is not None
+        and not ctx.confident
+        and (best.confidence.score < fraction * ctx.estimator.threshold)
+    )
 
 
 def offer_from_starts(

@@ -140,8 +140,8 @@ class RegisterRequest(_Strict):
         True,
         description="with icp: when the result is still 'suspect', try the coarse phase again from six starts 30° "
         "around the best estimate, on sparse clouds ICP from the best estimate shifted along each axis, a "
-        "wide-window ICP from the input pose, and last, on sparse clouds, the agent from the global mode's `starts` rotations; "
-        "the most confident result is kept",
+        "wide-window ICP from the input pose, and last, on sparse clouds whose best result is still far from "
+        "'converged', the agent from the global mode's `starts` rotations; the most confident result is kept",
     )
     global_match: bool = Field(
         True,

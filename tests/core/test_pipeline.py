@@ -196,23 +196,36 @@ def test_global_starts_rescue_a_half_turn_on_sparse_clouds_only(n_points):
     """The answer is 150° about x: beyond the stand-in's 60° from the identity and from every restart 30° around it.
     On a sparse cloud the last rescue, the agent from the global mode's 24 starts (one batched call of 24 per step),
     reaches it and wins; on a dense one it does not run (the global match searches every rotation there), and the
-    result stays suspect, as it does on the sparse cloud without that rescue."""
+    result stays suspect, as it does on the sparse cloud without that rescue or where the best scores above its
+    gate."""
     _, _, T = rotated_problem(150.0, axis=(1.0, 0.0, 0.0))
     src = asymmetric_cloud(np.random.default_rng(0), n_points)
     tgt = src @ T[:3, :3].T + T[:3, 3]
     icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
-    config = RegistrationConfig(early_stop=True, rescue_restarts=True, rescue_global_starts=True)
+    config = RegistrationConfig(early_stop=True, rescue_restarts=True, rescue_global_starts=1.0)
     oracle = BatchedRangeLimitedOracle(src, tgt, T)
     reg = register(src, tgt, oracle, np.random.default_rng(0), config, icp=icp)
     sparse = n_points < 1000
     assert (24 in oracle.batch_calls) is sparse and oracle.batch_calls[:1] == [6]
     assert (reg.rescued == "global_starts") is sparse and (reg.confidence.status == "converged") is sparse
     assert (isotropic_errors(reg.T_target_source, T)[0] < 1e-4) is sparse
-    if sparse:  # the winning start's trajectory, as for the restarts
-        np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)
-        without = config.with_(rescue_global_starts=False)
-        plain = register(src, tgt, BatchedRangeLimitedOracle(src, tgt, T), np.random.default_rng(0), without, icp=icp)
-        assert plain.confidence.status == "suspect" and isotropic_errors(plain.T_target_source, T)[0] > 30.0
+    if not sparse:
+        return
+    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)  # the winning start's run
+    for fraction in (None, 1e-3):  # off, or gated out: the best scores more than a thousandth of the threshold
+        other = BatchedRangeLimitedOracle(src, tgt, T)
+        plain = register(
+            src, tgt, other, np.random.default_rng(0), config.with_(rescue_global_starts=fraction), icp=icp
+        )
+        assert 24 not in other.batch_calls and plain.confidence.status == "suspect"
+        assert isotropic_errors(plain.T_target_source, T)[0] > 30.0
+
+
+def test_the_global_starts_gate_is_a_fraction_of_the_threshold():
+    with pytest.raises(ValueError, match="rescue_global_starts"):
+        RegistrationConfig(rescue_global_starts=0.0)
+    with pytest.raises(ValueError, match="rescue_global_starts"):
+        RegistrationConfig(rescue_global_starts=1.5)
 
 
 def test_timing_stages_are_non_negative_and_add_up_to_the_total():

@@ -160,7 +160,7 @@ def test_the_default_request_reaches_a_150_degree_rotation_through_the_global_ma
 def test_robust_icp_rescue_and_agent_points_map_onto_the_config() -> None:
     """``robust_icp: false`` is least squares (the paper's v2), ``rescue: false`` drops the shifted starts and the
     global starts too, ``agent_points: null`` is the model's own number of points."""
-    from pranet.core.registration_config import ICP_KERNEL, RESCUE_SHIFTS, SERVICE_AGENT_POINTS
+    from pranet.core.registration_config import GLOBAL_STARTS_BELOW, ICP_KERNEL, RESCUE_SHIFTS, SERVICE_AGENT_POINTS
     from pranet.service.registration import request_config
     from pranet.service.schemas import RegisterRequest
 
@@ -173,7 +173,7 @@ def test_robust_icp_rescue_and_agent_points_map_onto_the_config() -> None:
     assert default.icp_kernel == ICP_KERNEL and default.rescue_shifts == RESCUE_SHIFTS
     assert config(robust_icp=False).icp_kernel is None and config(icp=False).icp_kernel is None
     assert config(rescue=False).rescue_shifts == () and config(icp=False).rescue_shifts == ()
-    assert default.rescue_global_starts and not config(rescue=False).rescue_global_starts
-    assert not config(icp=False).rescue_global_starts
+    assert default.rescue_global_starts == GLOBAL_STARTS_BELOW and config(rescue=False).rescue_global_starts is None
+    assert config(icp=False).rescue_global_starts is None
     assert default.agent_points == SERVICE_AGENT_POINTS and config(agent_points=None).agent_points is None
     assert config(agent_points=256).agent_points == 256
