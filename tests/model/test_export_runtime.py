@@ -14,29 +14,19 @@ from pranet.model.config import NetConfig  # noqa: E402
 from pranet.model.export import export_model  # noqa: E402
 from pranet.model.network import RewardNet  # noqa: E402
 
+ANALYTIC = {  # the 2.x networks: Sinkhorn matching and the analytic reward layer
+    "n_points": 128,
+    "pool": "maxmean",
+    "correspondence": True,
+    "matching": "sinkhorn",
+    "reward_head": "analytic",
+    "match_passes": 3,
+}
 NETS = {
     "mlp heads (1.x)": NetConfig(n_points=128, pool="maxmean", correspondence=True),
-    "analytic rewards (2.x)": NetConfig(
-        n_points=128, pool="maxmean", correspondence=True, matching="sinkhorn", reward_head="analytic", match_passes=3
-    ),
-    "with an overlap head": NetConfig(
-        n_points=128,
-        pool="maxmean",
-        correspondence=True,
-        matching="sinkhorn",
-        reward_head="analytic",
-        match_passes=3,
-        overlap_head=True,
-    ),
-    "with point-pair features": NetConfig(
-        n_points=128,
-        pool="maxmean",
-        correspondence=True,
-        matching="sinkhorn",
-        reward_head="analytic",
-        match_passes=3,
-        point_pair_features=True,
-    ),
+    "analytic rewards (2.x)": NetConfig(**ANALYTIC),
+    "with an overlap head": NetConfig(**ANALYTIC, overlap_head=True),
+    "with point-pair features": NetConfig(**ANALYTIC, point_pair_features=True),
 }
 
 
