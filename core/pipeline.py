@@ -1,7 +1,8 @@
 """The registration pipeline, runtime-agnostic: a set of candidates ranked by one confidence.
 
     clouds in -> prepare (check, cap, unit frame, resolution) -> agent from the input pose (exit checks)
-      -> global match (features + robust solver) -> rescues (agent restarts, wide ICP) -> back to world units
+      -> global match (features + robust solver) -> rescues (agent restarts, shifted ICP starts, wide ICP, the agent
+      from the global mode's starts) -> the winner's finish -> back to world units
 
 ``register`` runs one registration as a ``RegistrationConfig`` (``core.registration_config``) says: the paper's
 PRANet-v1 (the agent alone), PRANet-v2 (+ ICP), or the service's default. Cheap candidates come first and a
