@@ -170,12 +170,19 @@ def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -
     """Global mode: the coarse phase from every start at once (batched), then the rest of the schedule from the
     ``refine_top`` most confident only: the fine phase polishes, it does not decide which start wins, and each
     start costs a score call per step. The others keep their coarse-phase result."""
-    c, config = ctx.clouds, ctx.config
-    ctx.starts = start_transforms(start_rotations(config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
+    config = ctx.config
+    ctx.starts = global_starts(ctx)
     segments = split_schedule(ctx.schedule, (ctx.schedule[0],))
     ctx.agents, ctx.start_scores = from_starts(ctx, score_fn, ctx.starts, segments)
     for b in _top(ctx.start_scores, config.refine_top if ctx.icp is not None else 1):
         ctx.offer(AGENT, ctx.agents[b].transform, agent_index=b)
+
+
+def global_starts(ctx: RegistrationContext) -> Array:
+    """The global mode's ``config.n_starts`` well-spread rotations of the source about its centroid, each placed on
+    the target's centroid: ``(n_starts, 4, 4)``."""
+    c = ctx.clouds
+    return start_transforms(start_rotations(ctx.config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
 
 
 def from_starts(
@@ -272,8 +279,7 @@ def rescue(ctx: RegistrationContext) -> None:
             wide = ctx.wide_icp(c.src_unit, c.tgt_unit, np.eye(4), c.resolution)
         ctx.offer(WIDE_ICP, wide.transform)
     if far_from_confident(ctx, config.rescue_global_starts) and not c.resolution.dense:
-        starts = start_transforms(start_rotations(config.n_starts), c.src_n.mean(axis=0), c.tgt_unit.mean(axis=0))
-        offer_from_starts(ctx, batched(), starts, GLOBAL_STARTS, until_confident=True)
+        offer_from_starts(ctx, batched(), global_starts(ctx), GLOBAL_STARTS, until_confident=True)
 
 
 def far_from_confident(ctx: RegistrationContext, fraction: float | None) -> bool:

@@ -26,8 +26,10 @@ RESTARTS = "restarts"  # the agent's coarse phase again from starts around the b
 WIDE_ICP = "wide_icp"  # ICP with a wide window from the input pose
 SHIFTED_ICP = "shifted_icp"  # ICP from the best estimate moved along the axes (sparse clouds)
 GLOBAL_STARTS = "global_starts"  # the agent's coarse phase from the global mode's starts, the last rescue (sparse)
-# the wire's names (the response's)
-CandidateName = Literal["agent", "global_match", "restarts", "wide_icp", "shifted_icp", "global_starts"]
+# the wire's names (the response's): the rescues, and every candidate
+RescueName = Literal["restarts", "wide_icp", "shifted_icp", "global_starts"]
+RESCUES: tuple[str, ...] = get_args(RescueName)
+CandidateName = Literal["agent", "global_match", RescueName]
 CANDIDATES: tuple[str, ...] = get_args(CandidateName)
 
 
@@ -127,4 +129,4 @@ class Registration:
     @property
     def rescued(self) -> str | None:
         """Which rescue won over the agent's result (``None``: the agent's own result won)."""
-        return self.candidate if self.candidate in (RESTARTS, WIDE_ICP, SHIFTED_ICP, GLOBAL_STARTS) else None
+        return self.candidate if self.candidate in RESCUES else None

@@ -12,7 +12,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Fiel
 
 from pranet.core.confidence import CERTIFYING_MATCHES
 from pranet.core.registration_config import MAX_AGENT_POINTS, MIN_AGENT_POINTS, SERVICE_DEFAULT
-from pranet.core.registration_types import CandidateName
+from pranet.core.registration_types import CandidateName, RescueName
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
 from pranet.core.wire import BYTES_PER_POINT, ENCODING, encoded_length
 
@@ -246,7 +246,7 @@ class RegisterResponse(BaseModel):
         "is still doubtful after the first ICP iterations waits behind the global match and is listed only if it "
         "was refined after all",
     )
-    rescued: Literal["wide_icp", "restarts", "shifted_icp", "global_starts"] | None = Field(
+    rescued: RescueName | None = Field(
         None,
         description="which rescue won over the agent's result (null: none ran or none was more confident); with "
         "'restarts' or 'global_starts' the trajectory and initial_transform are the winning start's",
