@@ -6,7 +6,8 @@ torch = pytest.importorskip("torch")
 from pranet.core.actions import build_action_table  # noqa: E402
 from pranet.core.knn import knn_indices  # noqa: E402
 from pranet.model.config import PAPER_NET, NetConfig  # noqa: E402
-from pranet.model.network import EdgeConv, RewardNet, gather_neighbors  # noqa: E402
+from pranet.model.embedding import EdgeConv, gather_neighbors  # noqa: E402
+from pranet.model.network import RewardNet  # noqa: E402
 
 
 def textbook_edge_conv(x, idx, weight, bias):
@@ -100,7 +101,7 @@ def test_paper_preset_dynamic_graph_runs():
 def test_polar_rotation_matches_svd():
     from scipy.spatial.transform import Rotation
 
-    from pranet.model.network import polar_rotation
+    from pranet.model.matching import polar_rotation
 
     rng = np.random.default_rng(0)
     R = torch.from_numpy(Rotation.random(8, random_state=4).as_matrix())
@@ -123,7 +124,7 @@ def kabsch(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.
 def test_horn_rotation_matches_svd_kabsch_and_is_never_a_reflection():
     from scipy.spatial.transform import Rotation
 
-    from pranet.model.network import horn_rotation
+    from pranet.model.matching import horn_rotation
 
     rng = np.random.default_rng(3)
     R = Rotation.random(16, random_state=5).as_matrix()
@@ -156,7 +157,7 @@ def test_analytic_rewards_equal_the_numpy_labels():
 
 
 def test_sinkhorn_with_slack_is_doubly_stochastic_and_drops_unmatched_points():
-    from pranet.model.network import sinkhorn_with_slack
+    from pranet.model.matching import sinkhorn_with_slack
 
     torch.manual_seed(5)
     logits = torch.randn(2, 7, 9) * 2.0
@@ -276,7 +277,7 @@ def test_the_overlap_head_takes_the_points_it_calls_unshared_out_of_the_pose():
     share): the estimate is dragged toward that half. An overlap head that scores those points as unshared (a
     feature channel marks them; its weight makes their logit -20) leaves them to the slack, and the estimate is
     the shared half's, the identity. A fresh head (weight 0, bias +4) matches almost as a network without one."""
-    from pranet.model.network import SinkhornCorrespondence
+    from pranet.model.matching import SinkhornCorrespondence
 
     torch.manual_seed(0)
     rng = np.random.default_rng(5)
@@ -312,7 +313,7 @@ def test_an_overlap_head_needs_sinkhorn_matching():
 def test_plane_normals_are_the_planes_normals_in_any_pose():
     """Points on the plane z = 0.02·(noise), turned and moved at random: every point's normal is the turned z axis
     (up to sign), as PCA of its neighbours gives it."""
-    from pranet.model.network import plane_normals
+    from pranet.model.embedding import plane_normals
 
     rng = np.random.default_rng(3)
     flat = np.c_[rng.uniform(-1, 1, (200, 2)), 0.002 * rng.normal(size=200)]
@@ -325,7 +326,7 @@ def test_plane_normals_are_the_planes_normals_in_any_pose():
 
 
 def test_plane_normals_of_a_sphere_point_out():
-    from pranet.model.network import plane_normals
+    from pranet.model.embedding import plane_normals
 
     rng = np.random.default_rng(4)
     v = rng.normal(size=(500, 3))
@@ -335,7 +336,7 @@ def test_plane_normals_of_a_sphere_point_out():
 
 
 def test_point_pair_features_do_not_change_with_the_pose():
-    from pranet.model.network import point_pair_features
+    from pranet.model.embedding import point_pair_features
 
     rng = np.random.default_rng(6)
     pts = rng.normal(size=(1, 128, 3)) * [1.0, 0.6, 0.3]
