@@ -1,4 +1,5 @@
-"""core.pipeline.register with a stand-in reward model (tests/oracle_scorer.py): confidence and global mode."""
+"""core.pipeline.register with a stand-in reward model (tests/oracle_scorer.py): confidence, global mode, exit checks,
+the global match and the ICP gate (the rescues and the finish: test_pipeline_rescue.py, test_pipeline_finish.py)."""
 
 import numpy as np
 import pytest
@@ -8,8 +9,6 @@ from oracle_scorer import (
     asymmetric_cloud,
     rotated_problem,
     snapping_icp,
-    sparse_partial_pair,
-    turned,
     unit_truth,
 )
 from scipy.spatial.transform import Rotation
@@ -122,112 +121,6 @@ def test_exit_check_stops_the_agent_once_icp_is_confident():
     assert reg.confidence.status == "converged" and not reg.rescued
 
 
-def test_rescue_icp_wins_only_when_it_is_more_confident():
-    src, tgt, T = rotated_problem(150.0)  # out of the stand-in's reach: the agent fails, unconfidently
-    truth = unit_truth(src, tgt, T)
-    icp = snapping_icp(truth, 10.0)
-    wide_ok = lambda s, t, init, res: snapping_icp(truth, 180.0)(s, t, init)  # noqa: E731
-    reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_ok)
-    assert reg.rescued == "wide_icp" and isotropic_errors(reg.T_target_source, T)[0] < 1e-4
-    assert reg.confidence.status == "converged"
-    wide_bad = lambda s, t, init, res: snapping_icp(truth, 0.0)(s, t, init)  # noqa: E731  (stays at the input pose)
-    reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), icp=icp, rescue_icp=wide_bad)
-    assert isotropic_errors(reg.T_target_source, T)[0] > 30.0
-    assert reg.confidence.status == "suspect"
-
-
-def test_restarts_around_the_estimate_rescue_a_rotation_beyond_reach():
-    """The stand-in knows rotations within 35° only; the answer is 50° about x. With early stop the agent stays at
-    the identity (all rewards negative), unconfident; the restart turned +30° about x is within reach, converges,
-    and wins. Without restarts the result stays suspect."""
-    src, tgt, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
-    icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
-    args = (src, tgt)
-    early = RegistrationConfig(early_stop=True)
-    plain = register(*args, RangeLimitedOracle(src, tgt, T, reach_deg=35.0), np.random.default_rng(0), early, icp=icp)
-    assert plain.confidence.status == "suspect" and plain.rescued is None
-    oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
-    reg = register(*args, oracle, np.random.default_rng(0), early.with_(rescue_restarts=True), icp=icp)
-    assert reg.rescued == "restarts" and reg.confidence.status == "converged"
-    assert isotropic_errors(reg.T_target_source, T)[0] < 1e-4
-    assert oracle.batch_calls and oracle.batch_calls[0] == 6  # six restarts, one batched call per step
-    assert "rescue" in reg.timing_ms
-    # The winning restart's trajectory is returned, from its start 30° about x off the identity.
-    start_angle = np.degrees(np.linalg.norm(Rotation.from_matrix(reg.initial_transform[:3, :3]).as_rotvec()))
-    assert start_angle == pytest.approx(30.0)
-    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)
-
-
-@pytest.mark.parametrize("n_points", [20000, 300], ids=["dense", "sparse"])
-def test_restarts_are_skipped_on_dense_clouds_after_the_global_match(n_points):
-    """The same unconfident request with a global match that finds nothing: on a sparse cloud the restarts run (a
-    batched call of six starts) and one of them wins; on a dense one they do not (the global match has searched
-    every rotation there), and the wide ICP is what the rescue tries."""
-    _, _, T = rotated_problem(50.0, axis=(1.0, 0.0, 0.0))
-    src = asymmetric_cloud(np.random.default_rng(0), n_points)
-    tgt = src @ T[:3, :3].T + T[:3, 3]
-    icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
-    wide_calls = []
-
-    def wide(s, t, init, res):
-        wide_calls.append(1)
-        return IcpResult(np.asarray(init).copy(), 0.0, 0.0)
-
-    oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=35.0)
-    config = RegistrationConfig(early_stop=True, rescue_restarts=True, global_match=True)
-    reg = register(
-        src,
-        tgt,
-        oracle,
-        np.random.default_rng(0),
-        config.with_(icp_stages=(("point_to_plane", 2.0),)),
-        icp=icp,
-        rescue_icp=wide,
-        global_match_fn=lambda s, t, res, seed, viewpoint: iter(()),
-    )
-    if n_points < 1000:
-        assert oracle.batch_calls[:1] == [6] and reg.rescued == "restarts" and wide_calls == []
-    else:
-        assert oracle.batch_calls == [] and reg.rescued is None and wide_calls == [1]
-
-
-@pytest.mark.parametrize("n_points", [300, 20000], ids=["sparse", "dense"])
-def test_global_starts_rescue_a_half_turn_on_sparse_clouds_only(n_points):
-    """The answer is 150° about x: beyond the stand-in's 60° from the identity and from every restart 30° around it.
-    On a sparse cloud the last rescue, the agent from the global mode's 24 starts (one batched call of 24 per step),
-    reaches it and wins; on a dense one it does not run (the global match searches every rotation there), and the
-    result stays suspect, as it does on the sparse cloud without that rescue or where the best scores above its
-    gate."""
-    _, _, T = rotated_problem(150.0, axis=(1.0, 0.0, 0.0))
-    src = asymmetric_cloud(np.random.default_rng(0), n_points)
-    tgt = src @ T[:3, :3].T + T[:3, 3]
-    icp = snapping_icp(unit_truth(src, tgt, T), 5.0)
-    config = RegistrationConfig(early_stop=True, rescue_restarts=True, rescue_global_starts=1.0)
-    oracle = BatchedRangeLimitedOracle(src, tgt, T)
-    reg = register(src, tgt, oracle, np.random.default_rng(0), config, icp=icp)
-    sparse = n_points < 1000
-    assert (24 in oracle.batch_calls) is sparse and oracle.batch_calls[:1] == [6]
-    assert (reg.rescued == "global_starts") is sparse and (reg.confidence.status == "converged") is sparse
-    assert (isotropic_errors(reg.T_target_source, T)[0] < 1e-4) is sparse
-    if not sparse:
-        return
-    np.testing.assert_allclose(reg.trajectory[-1][2], reg.agent_T_target_source)  # the winning start's run
-    for fraction in (None, 1e-3):  # off, or gated out: the best scores more than a thousandth of the threshold
-        other = BatchedRangeLimitedOracle(src, tgt, T)
-        plain = register(
-            src, tgt, other, np.random.default_rng(0), config.with_(rescue_global_starts=fraction), icp=icp
-        )
-        assert 24 not in other.batch_calls and plain.confidence.status == "suspect"
-        assert isotropic_errors(plain.T_target_source, T)[0] > 30.0
-
-
-def test_the_global_starts_gate_is_a_fraction_of_the_threshold():
-    with pytest.raises(ValueError, match="rescue_global_starts"):
-        RegistrationConfig(rescue_global_starts=0.0)
-    with pytest.raises(ValueError, match="rescue_global_starts"):
-        RegistrationConfig(rescue_global_starts=1.5)
-
-
 def test_timing_stages_are_non_negative_and_add_up_to_the_total():
     """The breakdown pranet-bench reports: with exit checks that do not exit (ICP after 20 and 40 steps, then the
     final ICP) every stage is >= 0 and the stages account for the total."""
@@ -252,68 +145,6 @@ def test_timing_stages_are_non_negative_and_add_up_to_the_total():
     assert all(t[k] >= 0.0 for k in stages), t
     assert t["icp"] >= 3 * 5.0  # two checks and the final refinement
     assert sum(t[k] for k in stages) == pytest.approx(t["total"], rel=1e-9)
-
-
-def test_the_polish_refines_the_winner_and_is_dropped_when_it_makes_it_worse():
-    """On dense clouds ``polish`` runs once, on the winner; a polish that lands on the truth is kept, one that throws
-    the result off (less confident, no longer converged) is dropped."""
-    _, _, T = rotated_problem(40.0)
-    src = asymmetric_cloud(np.random.default_rng(0), 20000)
-    tgt = src @ T[:3, :3].T + T[:3, 3]
-    truth = unit_truth(src, tgt, T)
-    off = truth.copy()
-    off[:3, 3] += 0.002  # an ICP that stops a little short: still converged, not exact
-    short_icp = lambda s, t, init, res=None: IcpResult(off.copy(), 1.0, 0.0)  # noqa: E731
-    polished = []
-
-    def to_truth(s, t, T_unit, res):
-        polished.append(T_unit)
-        return truth.copy()
-
-    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), polish=True)
-    reg = register(
-        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp, polish_fn=to_truth
-    )
-    assert len(polished) == 1 and np.allclose(polished[0], off)
-    assert isotropic_errors(reg.T_target_source, T)[1] < 1e-6 and reg.timing_ms["polish"] > 0
-    throw_off = lambda s, t, T_unit, res: np.eye(4)  # noqa: E731
-    reg = register(
-        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp, polish_fn=throw_off
-    )
-    np.testing.assert_allclose(reg.normalization.transform_to_unit(reg.T_target_source), off, atol=1e-9)
-    reg = register(
-        src,
-        tgt,
-        RangeLimitedOracle(src, tgt, T),
-        np.random.default_rng(0),
-        config.with_(polish=False),
-        icp=short_icp,
-        polish_fn=to_truth,
-    )
-    assert len(polished) == 1  # not asked for: not run
-
-
-def test_the_polish_never_decides_the_status():
-    """A ``suspect`` winner is not polished: on a wrong pose a finer refinement squeezes the overlap tighter and could
-    lift it over the threshold, so the status is the ranking refinement's (a polish that lands on the truth does
-    not make it ``converged`` either)."""
-    src, tgt, T = rotated_problem(40.0)
-    truth = unit_truth(src, tgt, T)
-    off = truth.copy()
-    off[:3, 3] += 0.01
-    short_icp = lambda s, t, init, res=None: IcpResult(off.copy(), 1.0, 0.0)  # noqa: E731
-    polished = []
-
-    def to_truth(s, t, T_unit, res):
-        polished.append(T_unit)
-        return truth.copy()
-
-    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), polish=True, threshold=1.01)  # never converged
-    reg = register(
-        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=short_icp, polish_fn=to_truth
-    )
-    assert polished == [] and reg.confidence.status == "suspect"
-    np.testing.assert_allclose(reg.normalization.transform_to_unit(reg.T_target_source), off, atol=1e-9)
 
 
 def test_the_icp_gate_asks_for_the_rest_of_the_refinement_only_for_promising_candidates():
@@ -600,68 +431,6 @@ def test_an_estimate_offered_again_is_not_refined_again():
     assert ctx.tried == {"agent": first.confidence.score, "restarts": first.confidence.score}
     ctx.offer("agent", unit_truth(src, tgt, T))
     assert len(refined) == 2
-
-
-def test_shifted_starts_rescue_an_estimate_whose_translation_is_out_of_icp_reach():
-    """The truth is a shift of 0.3 (unit frame) along x; the agent takes no step, and the stand-in ICP reaches the
-    truth only from within 0.1 of its translation. On a sparse cloud the rescue's shifted starts (0.15 and 0.3 along
-    each axis) find it; on a dense one they do not run; without them the result stays suspect."""
-    from pranet.core.preprocess import fit_normalization
-    from pranet.core.se3 import make_transform
-
-    def problem(n_points: int):
-        src = asymmetric_cloud(np.random.default_rng(0), n_points)
-        scale = fit_normalization(src, src).scale
-        T = make_transform(np.eye(3), [0.3 / scale, 0.0, 0.0])
-        return src, src + T[:3, 3], T
-
-    def translation_reach_icp(truth):
-        def icp(source, target, init, resolution=None, proceed=None):
-            close = np.linalg.norm(np.asarray(init)[:3, 3] - truth[:3, 3]) < 0.1
-            return IcpResult((truth if close else np.asarray(init)).copy(), 1.0 if close else 0.0, 0.0)
-
-        return icp
-
-    still = RegistrationConfig(schedule=(0, 0), rescue_shifts=(0.15, 0.3))
-    for n_points, shifted in ((300, True), (20000, False)):
-        src, tgt, T = problem(n_points)
-        icp = translation_reach_icp(unit_truth(src, tgt, T))
-        reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), still, icp=icp)
-        assert (reg.candidate == "shifted_icp") is shifted and (reg.rescued == "shifted_icp") is shifted
-        assert (isotropic_errors(reg.T_target_source, T)[1] < 1e-9) is shifted
-        assert reg.confidence.status == ("converged" if shifted else "suspect")
-    src, tgt, T = problem(300)
-    icp = translation_reach_icp(unit_truth(src, tgt, T))
-    plain = register(
-        src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), still.with_(rescue_shifts=()), icp=icp
-    )
-    assert plain.confidence.status == "suspect" and plain.candidate == "agent"
-
-
-def test_sparse_partial_pairs_get_the_robust_finish_and_whole_ones_do_not():
-    """A stand-in ICP that stops 2° short of the truth: on a sparse partial pair the finish (symmetric robust
-    point-to-point) takes the winner nearer the truth; on the same shape with whole overlap it does not run, and
-    the result is the ICP's."""
-    from pranet.core.se3 import apply_transform
-
-    config = RegistrationConfig(icp_stages=(("point_to_plane", 2.0),), exit_checks=(20, 40), polish=True)
-
-    def run(src, tgt, T, polish=True):
-        short = turned(2.0, [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]) @ unit_truth(src, tgt, T)
-        icp = lambda s, t, init, res=None, proceed=None: IcpResult(short.copy(), 1.0, 0.0)  # noqa: E731
-        oracle = RangeLimitedOracle(src, tgt, T)
-        return register(src, tgt, oracle, np.random.default_rng(0), config.with_(polish=polish), icp=icp)
-
-    src, tgt, T = sparse_partial_pair(0)
-    reg = run(src, tgt, T)
-    assert reg.confidence.overlap < 0.98
-    assert isotropic_errors(reg.T_target_source, T)[0] < 1.0 and reg.timing_ms["polish"] > 0
-    assert isotropic_errors(run(src, tgt, T, polish=False).T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)
-
-    whole = asymmetric_cloud(np.random.default_rng(3))
-    reg = run(whole, apply_transform(T, whole), T)
-    assert reg.confidence.overlap >= 0.98
-    assert isotropic_errors(reg.T_target_source, T)[0] == pytest.approx(2.0, abs=1e-6)
 
 
 def test_the_agent_sees_the_configs_number_of_points_or_the_models():
