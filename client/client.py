@@ -86,8 +86,8 @@ class RegistrationResult:
     n_source: int | None = None  # points the service received
     n_target: int | None = None
     exit_checks: list[dict[str, Any]] = field(default_factory=list)  # [{"step", "confidence"}]: ICP checks run
-    rescued: str | None = None  # "wide_icp" | "restarts" | "shifted_icp" | "global_starts": which rescue won, if any
-    # which candidate won: "agent", "global_match", "restarts", "wide_icp", "shifted_icp", "global_starts"
+    rescued: str | None = None  # "wide_icp" | "restarts" | "shifted_icp" | "global_starts" | "turned_icp", if any
+    # which candidate won: "agent", "global_match", "restarts", "wide_icp", "shifted_icp", "global_starts", "turned_icp"
     candidate: str | None = None
     candidates: dict[str, float] = field(default_factory=dict)  # every candidate tried -> its best confidence
     spacing: float | None = None  # the data's resolution (median nearest-neighbour distance), input units

@@ -2,7 +2,7 @@
 
     clouds in -> prepare (check, cap, unit frame, resolution) -> agent from the input pose (exit checks)
       -> global match (features + robust solver) -> rescues (agent restarts, shifted ICP starts, wide ICP, the agent
-      from the global mode's starts) -> the winner's finish -> back to world units
+      from the global mode's starts, ICP from turned copies of the best) -> the winner's finish -> back to world units
 
 ``register`` runs one registration as a ``RegistrationConfig`` (``core.registration_config``) says: the paper's
 PRANet-v1 (the agent alone), PRANet-v2 (+ ICP), or the service's default. Cheap candidates come first and a
@@ -31,7 +31,7 @@ import numpy.typing as npt
 
 from pranet.core.agent import AgentResult, BatchScoreFn, ScoreFn, batch_from_single, run_agent, run_agent_batch
 from pranet.core.confidence import ConfidenceEstimator
-from pranet.core.registration_config import PAPER_V1, RegistrationConfig
+from pranet.core.registration_config import PAPER_V1, TURNS, RegistrationConfig
 from pranet.core.registration_context import RegistrationContext, Scorer, prepare
 from pranet.core.registration_types import (
     AGENT,
@@ -39,6 +39,7 @@ from pranet.core.registration_types import (
     GLOBAL_STARTS,
     RESTARTS,
     SHIFTED_ICP,
+    TURNED_ICP,
     WIDE_ICP,
     GlobalMatchFn,
     IcpFn,
@@ -54,6 +55,7 @@ from pranet.core.starts import (
     shifted_transforms,
     start_rotations,
     start_transforms,
+    turned_transforms,
 )
 
 # The finish of sparse partial pairs (``finish_partial_overlap``): for winners with less than this fraction of the
@@ -247,12 +249,13 @@ def rescue(ctx: RegistrationContext) -> None:
     """Rescues of a still unconfident result (beyond the paper), cheapest first: the agent's coarse phase again from
     six starts 30° around the agent's best estimate (batched; the ``refine_top`` most promising are refined), on
     sparse clouds ICP from the best estimate shifted along each axis (``config.rescue_shifts``, until one is
-    confident), a wide-window ICP from the input pose, and last, on sparse clouds where the best is still far from
-    confident (under ``config.rescue_global_starts`` times the status threshold), the agent's coarse phase from the
-    global mode's well-spread starts. The restarts and the wide ICP both run: a wide
-    ICP may be confidently wrong. The restarts centre on the agent's own estimate, not on a global match that scored
-    higher: on sparse partial shapes that one is often far off, and the agent's is near enough for a 30° restart to
-    reach the truth (ModelNet40 partial: docs/DESIGN.md). Not on dense clouds after the global match
+    confident), a wide-window ICP from the input pose, on sparse clouds where the best is still far from confident
+    (under ``config.rescue_global_starts`` times the status threshold) the agent's coarse phase from the global mode's
+    well-spread starts, and last, on sparse clouds still under ``config.rescue_turns`` times the threshold, ICP from
+    the best estimate turned by each of those rotations (until one is confident). The restarts and the wide ICP both
+    run: a wide ICP may be confidently wrong. The restarts centre on the agent's own estimate, not on a global match
+    that scored higher: on sparse partial shapes that one is often far off, and the agent's is near enough for a 30°
+    restart to reach the truth (ModelNet40 partial: docs/DESIGN.md). Not on dense clouds after the global match
     (``restarts_help``), which has searched every rotation there."""
     c, config = ctx.clouds, ctx.config
     batch: BatchScoreFn | None = None  # the target embedded once for both batched rescues
@@ -280,6 +283,12 @@ def rescue(ctx: RegistrationContext) -> None:
         ctx.offer(WIDE_ICP, wide.transform)
     if far_from_confident(ctx, config.rescue_global_starts) and not c.resolution.dense:
         offer_from_starts(ctx, batched(), global_starts(ctx), GLOBAL_STARTS, until_confident=True)
+    if far_from_confident(ctx, config.rescue_turns) and not c.resolution.dense:
+        assert ctx.best is not None
+        for T in turned_transforms(ctx.best.T_unit, c.src_unit.mean(axis=0), TURNS):
+            ctx.offer(TURNED_ICP, T)
+            if ctx.confident:
+                break
 
 
 def far_from_confident(ctx: RegistrationContext, fraction: float | None) -> bool:

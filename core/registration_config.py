@@ -67,6 +67,16 @@ RESCUE_SHIFTS = (0.15, 0.3, 0.45, 0.6)
 # turned one right answer (0.52) wrong; the right answers that end `suspect` score 0.45 and up. Under the gate it
 # runs on a fifth of those requests (docs/DESIGN.md, "The global mode's starts as the last rescue").
 GLOBAL_STARTS_BELOW = 0.72
+# Last of all, on sparse clouds, ICP from the best estimate turned about where it puts the source by each of the
+# global mode's well-spread rotations but the identity (``TURNS - 1`` starts, until one is confident), where the best
+# confidence is still under this fraction of the status threshold. On a partial pair of a nearly symmetric shape the
+# agent and the other rescues end on a turned copy of the truth (a half or a quarter turn, or 40-80° off), from which
+# no 30° restart reaches it, while the truth scores higher than that answer (21 of the 24 failures of pranet-bench's
+# first 150 partial pairs); from the estimate after all other rescues, on the first 300 of the 1266 partial test
+# pairs, these starts made right 16 of 65 wrong answers and no right one wrong, all of them scoring under 0.88 of the
+# threshold (docs/DESIGN.md, "ICP from turned copies of the answer").
+TURNED_ICP_BELOW = 0.9
+TURNS = 60
 # The service's agent sees this many points per cloud, not the 256 the network was trained on (nothing in the network
 # fixes N; its graph and matching cost grow with N²): a network call takes half the time, and ICP, which works on
 # every point, finishes what the coarser estimate leaves. pranet-bench's first 100 unseen-category pairs per setting,
@@ -115,7 +125,9 @@ class RegistrationConfig:
     around the best estimate, ``rescue_shifts`` refines the best estimate moved by each distance along each
     axis (sparse clouds), and last, where the best confidence is still under ``rescue_global_starts`` times the
     status threshold (``None``: never), the agent's coarse phase from the ``n_starts`` rotations of the global mode,
-    its ``refine_top`` most confident refined (sparse clouds). ``init="global"``
+    its ``refine_top`` most confident refined (sparse clouds), then, under ``rescue_turns`` times the threshold
+    (``None``: never), ICP from the best estimate turned by each of ``TURNS - 1`` well-spread rotations (sparse
+    clouds). ``init="global"``
     starts the agent from ``n_starts`` rotations and refines the ``refine_top`` most confident. ``schedule``: steps
     per step-size scale (``None`` = the model's).
     ``walk_steps``: 0 = the paper's protocol, a network call per step; ``k > 0`` = walk up to ``k`` steps toward
@@ -160,6 +172,7 @@ class RegistrationConfig:
     rescue_shifts: tuple[float, ...] = ()
     agent_points: int | None = None
     rescue_global_starts: float | None = None
+    rescue_turns: float | None = None
 
     def __post_init__(self) -> None:
         check_icp_stages(self.icp_stages)
@@ -167,6 +180,8 @@ class RegistrationConfig:
             raise ValueError(f"rescue_window must be > 0 or None, got {self.rescue_window}")
         if self.rescue_global_starts is not None and not 0.0 < self.rescue_global_starts <= 1.0:
             raise ValueError(f"rescue_global_starts must be in (0, 1] or None, got {self.rescue_global_starts}")
+        if self.rescue_turns is not None and not 0.0 < self.rescue_turns <= 1.0:
+            raise ValueError(f"rescue_turns must be in (0, 1] or None, got {self.rescue_turns}")
         if self.init not in INITS:
             raise ValueError(f"unknown init {self.init!r}; choose from {INITS}")
         if self.policy not in POLICIES:
@@ -225,4 +240,5 @@ SERVICE_DEFAULT = PAPER_V2.with_(
     rescue_shifts=RESCUE_SHIFTS,
     agent_points=SERVICE_AGENT_POINTS,
     rescue_global_starts=GLOBAL_STARTS_BELOW,
+    rescue_turns=TURNED_ICP_BELOW,
 )

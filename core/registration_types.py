@@ -25,9 +25,10 @@ GLOBAL_MATCH = "global_match"  # the classical global match (features + robust s
 RESTARTS = "restarts"  # the agent's coarse phase again from starts around the best estimate
 WIDE_ICP = "wide_icp"  # ICP with a wide window from the input pose
 SHIFTED_ICP = "shifted_icp"  # ICP from the best estimate moved along the axes (sparse clouds)
-GLOBAL_STARTS = "global_starts"  # the agent's coarse phase from the global mode's starts, the last rescue (sparse)
+GLOBAL_STARTS = "global_starts"  # the agent's coarse phase from the global mode's starts (sparse)
+TURNED_ICP = "turned_icp"  # ICP from the best estimate turned about itself by well-spread rotations, the last (sparse)
 # the wire's names (the response's): the rescues, and every candidate
-RescueName = Literal["restarts", "wide_icp", "shifted_icp", "global_starts"]
+RescueName = Literal["restarts", "wide_icp", "shifted_icp", "global_starts", "turned_icp"]
 RESCUES: tuple[str, ...] = get_args(RescueName)
 CandidateName = Literal["agent", "global_match", RescueName]
 CANDIDATES: tuple[str, ...] = get_args(CandidateName)

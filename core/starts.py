@@ -103,6 +103,12 @@ def restart_transforms(T: npt.ArrayLike, source_centroid: npt.ArrayLike, rotatio
     return np.stack([make_transform(Q @ T[:3, :3], c - Q @ T[:3, :3] @ m) for Q in np.asarray(rotations)])
 
 
+def turned_transforms(T: npt.ArrayLike, source_centroid: npt.ArrayLike, n: int) -> Array:
+    """``(n - 1, 4, 4)``: the estimate ``T`` turned about where it puts the source centroid by each of the ``n``
+    well-spread rotations of ``start_rotations`` but the first (the identity)."""
+    return restart_transforms(T, source_centroid, start_rotations(n)[1:])
+
+
 def shifted_transforms(T: npt.ArrayLike, distances: npt.ArrayLike) -> Array:
     """``(6 D, 4, 4)``: the estimate ``T`` (``T_target_source``) moved by ``±d`` along x, y and z for each of
     ``distances: (D,)`` (the frame's units), nearest first."""

@@ -146,6 +146,7 @@ def request_config(
         rescue_restarts=base.rescue_restarts and refine and req.rescue,
         rescue_shifts=base.rescue_shifts if refine and req.rescue else (),
         rescue_global_starts=base.rescue_global_starts if refine and req.rescue else None,
+        rescue_turns=base.rescue_turns if refine and req.rescue else None,
         global_match=base.global_match and refine and req.global_match,
         init=req.init,
         n_starts=req.starts,

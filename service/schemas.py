@@ -254,9 +254,11 @@ class RegisterResponse(BaseModel):
     candidate: CandidateName = Field(
         "agent",
         description="which candidate won: 'agent' (the agent's estimate, refined by ICP), 'global_match' (the "
-        "classical global match, for any initial pose, refined by ICP), 'restarts', 'wide_icp', 'shifted_icp' or "
-        "'global_starts' (the rescues; 'shifted_icp': ICP from the best estimate moved along an axis, on sparse "
-        "clouds; 'global_starts': the agent from the global mode's starts, the last rescue on sparse clouds)",
+        "classical global match, for any initial pose, refined by ICP), 'restarts', 'wide_icp', 'shifted_icp', "
+        "'global_starts' or 'turned_icp' (the rescues; 'shifted_icp': ICP from the best estimate moved along an "
+        "axis, on sparse clouds; 'global_starts': the agent from the global mode's starts, on sparse clouds; "
+        "'turned_icp': ICP from the best estimate turned by the global mode's rotations, the last rescue on sparse "
+        "clouds)",
     )
     candidates: dict[str, float] = Field(
         default_factory=dict, description="every candidate tried this request -> its best confidence"

@@ -1,5 +1,6 @@
 """core.pipeline's rescues of a still unconfident result (restarts, shifted ICP starts, the wide ICP, the global
-mode's starts), with a stand-in reward model (tests/oracle_scorer.py) and stand-in ICPs."""
+mode's starts, ICP from turned copies of the best), with a stand-in reward model (tests/oracle_scorer.py) and
+stand-in ICPs."""
 
 import numpy as np
 import pytest
@@ -123,6 +124,52 @@ def test_the_global_starts_gate_is_a_fraction_of_the_threshold():
         RegistrationConfig(rescue_global_starts=0.0)
     with pytest.raises(ValueError, match="rescue_global_starts"):
         RegistrationConfig(rescue_global_starts=1.5)
+
+
+@pytest.mark.parametrize("n_points", [300, 20000], ids=["sparse", "dense"])
+def test_turned_icp_rescues_a_half_turn_on_sparse_clouds_only(n_points):
+    """The answer is 150° about x and the agent stays at the identity; the stand-in ICP lands on the truth from within
+    40° only. On a sparse cloud the last rescue, ICP from the estimate turned by the global mode's well-spread
+    rotations, reaches it, wins and stops there (the starts after the confident one are not refined); on a dense one,
+    off, or gated out, it does not run and the result stays suspect."""
+    from pranet.core.registration_config import TURNS
+    from pranet.core.se3 import make_transform
+    from pranet.core.starts import start_rotations
+
+    _, _, T = rotated_problem(150.0, axis=(1.0, 0.0, 0.0))
+    src = asymmetric_cloud(np.random.default_rng(0), n_points)
+    tgt = src @ T[:3, :3].T + T[:3, 3]
+    truth = unit_truth(src, tgt, T)
+    turns = [isotropic_errors(make_transform(Q, np.zeros(3)), truth)[0] for Q in start_rotations(TURNS)]
+    assert min(turns[1:]) < 40.0 < turns[0]  # a turned start within the stand-in's reach, the estimate not
+    calls = []
+
+    def icp(s, t, init, res=None, proceed=None):
+        calls.append(isotropic_errors(init, truth)[0])
+        return snapping_icp(truth, 40.0)(s, t, init)
+
+    config = RegistrationConfig(early_stop=True, rescue_turns=1.0)
+    reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=icp)
+    sparse = n_points < 1000
+    assert (reg.rescued == "turned_icp") is sparse and (reg.confidence.status == "converged") is sparse
+    assert (isotropic_errors(reg.T_target_source, T)[0] < 1e-4) is sparse
+    if not sparse:
+        assert len(calls) == 1  # the agent's own estimate only
+        return
+    assert calls[-1] < 40.0 and all(c >= 40.0 for c in calls[:-1])  # no start refined after the confident one
+    for fraction in (None, 1e-3):  # off, or gated out: the best scores more than a thousandth of the threshold
+        calls.clear()
+        plain = register(
+            src,
+            tgt,
+            RangeLimitedOracle(src, tgt, T),
+            np.random.default_rng(0),
+            config.with_(rescue_turns=fraction),
+            icp=icp,
+        )
+        assert len(calls) == 1 and plain.confidence.status == "suspect" and plain.rescued is None
+        with pytest.raises(ValueError, match="rescue_turns"):
+            RegistrationConfig(rescue_turns=0.0 if fraction is None else 1.5)
 
 
 def test_shifted_starts_rescue_an_estimate_whose_translation_is_out_of_icp_reach():

@@ -159,8 +159,14 @@ def test_the_default_request_reaches_a_150_degree_rotation_through_the_global_ma
 
 def test_robust_icp_rescue_and_agent_points_map_onto_the_config() -> None:
     """``robust_icp: false`` is least squares (the paper's v2), ``rescue: false`` drops the shifted starts and the
-    global starts too, ``agent_points: null`` is the model's own number of points."""
-    from pranet.core.registration_config import GLOBAL_STARTS_BELOW, ICP_KERNEL, RESCUE_SHIFTS, SERVICE_AGENT_POINTS
+    global starts and the turned ICP starts too, ``agent_points: null`` is the model's own number of points."""
+    from pranet.core.registration_config import (
+        GLOBAL_STARTS_BELOW,
+        ICP_KERNEL,
+        RESCUE_SHIFTS,
+        SERVICE_AGENT_POINTS,
+        TURNED_ICP_BELOW,
+    )
     from pranet.service.registration import request_config
     from pranet.service.schemas import RegisterRequest
 
@@ -175,5 +181,7 @@ def test_robust_icp_rescue_and_agent_points_map_onto_the_config() -> None:
     assert config(rescue=False).rescue_shifts == () and config(icp=False).rescue_shifts == ()
     assert default.rescue_global_starts == GLOBAL_STARTS_BELOW and config(rescue=False).rescue_global_starts is None
     assert config(icp=False).rescue_global_starts is None
+    assert default.rescue_turns == TURNED_ICP_BELOW and config(rescue=False).rescue_turns is None
+    assert config(icp=False).rescue_turns is None
     assert default.agent_points == SERVICE_AGENT_POINTS and config(agent_points=None).agent_points is None
     assert config(agent_points=256).agent_points == 256
