@@ -148,8 +148,11 @@ def test_turned_icp_rescues_a_half_turn_on_sparse_clouds_only(n_points):
         calls.append(isotropic_errors(init, truth)[0])
         return snapping_icp(truth, 40.0)(s, t, init)
 
+    def run(config: RegistrationConfig):
+        return register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=icp)
+
     config = RegistrationConfig(early_stop=True, rescue_turns=1.0)
-    reg = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config, icp=icp)
+    reg = run(config)
     sparse = n_points < 1000
     assert (reg.rescued == "turned_icp") is sparse and (reg.confidence.status == "converged") is sparse
     assert (isotropic_errors(reg.T_target_source, T)[0] < 1e-4) is sparse
@@ -159,14 +162,7 @@ def test_turned_icp_rescues_a_half_turn_on_sparse_clouds_only(n_points):
     assert calls[-1] < 40.0 and all(c >= 40.0 for c in calls[:-1])  # no start refined after the confident one
     for fraction in (None, 1e-3):  # off, or gated out: the best scores more than a thousandth of the threshold
         calls.clear()
-        plain = register(
-            src,
-            tgt,
-            RangeLimitedOracle(src, tgt, T),
-            np.random.default_rng(0),
-            config.with_(rescue_turns=fraction),
-            icp=icp,
-        )
+        plain = run(config.with_(rescue_turns=fraction))
         assert len(calls) == 1 and plain.confidence.status == "suspect" and plain.rescued is None
         with pytest.raises(ValueError, match="rescue_turns"):
             RegistrationConfig(rescue_turns=0.0 if fraction is None else 1.5)
