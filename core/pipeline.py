@@ -31,7 +31,7 @@ import numpy.typing as npt
 
 from pranet.core.agent import AgentResult, BatchScoreFn, ScoreFn, batch_from_single, run_agent, run_agent_batch
 from pranet.core.confidence import ConfidenceEstimator
-from pranet.core.registration_config import PAPER_V1, TURNS, RegistrationConfig
+from pranet.core.registration_config import CENTRED_TURNS, PAPER_V1, TURNS, RegistrationConfig
 from pranet.core.registration_context import RegistrationContext, Scorer, prepare
 from pranet.core.registration_types import (
     AGENT,
@@ -50,6 +50,7 @@ from pranet.core.robust_icp import symmetric_robust_icp
 from pranet.core.se3 import Array
 from pranet.core.stage_timer import StageTimer
 from pranet.core.starts import (
+    centred_turned_transforms,
     local_rotations,
     restart_transforms,
     shifted_transforms,
@@ -252,11 +253,12 @@ def rescue(ctx: RegistrationContext) -> None:
     confident), a wide-window ICP from the input pose, on sparse clouds where the best is still far from confident
     (under ``config.rescue_global_starts`` times the status threshold) the agent's coarse phase from the global mode's
     well-spread starts, and last, on sparse clouds still under ``config.rescue_turns`` times the threshold, ICP from
-    the best estimate turned by each of those rotations (until one is confident). The restarts and the wide ICP both
-    run: a wide ICP may be confidently wrong. The restarts centre on the agent's own estimate, not on a global match
-    that scored higher: on sparse partial shapes that one is often far off, and the agent's is near enough for a 30°
-    restart to reach the truth (ModelNet40 partial: docs/DESIGN.md). Not on dense clouds after the global match
-    (``restarts_help``), which has searched every rotation there."""
+    the best estimate turned by ``TURNS`` well-spread rotations, then by ``CENTRED_TURNS`` with the source centroid
+    put on the target's (until one is confident). The restarts and the wide ICP both run: a wide ICP may be
+    confidently wrong. The restarts centre on the agent's own estimate, not on a global match that scored higher: on
+    sparse partial shapes that one is often far off, and the agent's is near enough for a 30° restart to reach the
+    truth (ModelNet40 partial: docs/DESIGN.md). Not on dense clouds after the global match (``restarts_help``), which
+    has searched every rotation there."""
     c, config = ctx.clouds, ctx.config
     batch: BatchScoreFn | None = None  # the target embedded once for both batched rescues
 
@@ -285,7 +287,14 @@ def rescue(ctx: RegistrationContext) -> None:
         offer_from_starts(ctx, batched(), global_starts(ctx), GLOBAL_STARTS, until_confident=True)
     if far_from_confident(ctx, config.rescue_turns) and not c.resolution.dense:
         assert ctx.best is not None
-        for T in turned_transforms(ctx.best.T_unit, c.src_unit.mean(axis=0), TURNS):
+        centroid = c.src_unit.mean(axis=0)
+        starts = np.concatenate(
+            [
+                turned_transforms(ctx.best.T_unit, centroid, TURNS),
+                centred_turned_transforms(ctx.best.T_unit, centroid, c.tgt_unit.mean(axis=0), CENTRED_TURNS),
+            ]
+        )
+        for T in starts:
             ctx.offer(TURNED_ICP, T)
             if ctx.confident:
                 break

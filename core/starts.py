@@ -109,6 +109,17 @@ def turned_transforms(T: npt.ArrayLike, source_centroid: npt.ArrayLike, n: int) 
     return restart_transforms(T, source_centroid, start_rotations(n)[1:])
 
 
+def centred_turned_transforms(
+    T: npt.ArrayLike, source_centroid: npt.ArrayLike, target_centroid: npt.ArrayLike, n: int
+) -> Array:
+    """``(n - 1, 4, 4)``: ``turned_transforms``, each then moved so that it puts the source centroid on
+    ``target_centroid`` (where a partial answer's translation is off as well as its rotation)."""
+    turned = turned_transforms(T, source_centroid, n)
+    moved = turned[:, :3, :3] @ np.asarray(source_centroid, dtype=np.float64) + turned[:, :3, 3]
+    turned[:, :3, 3] += np.asarray(target_centroid, dtype=np.float64) - moved
+    return turned
+
+
 def shifted_transforms(T: npt.ArrayLike, distances: npt.ArrayLike) -> Array:
     """``(6 D, 4, 4)``: the estimate ``T`` (``T_target_source``) moved by ``±d`` along x, y and z for each of
     ``distances: (D,)`` (the frame's units), nearest first."""

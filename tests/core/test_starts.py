@@ -81,6 +81,23 @@ def test_restart_transforms_turn_the_estimate_about_the_moved_centroid():
         np.testing.assert_allclose(out[k][:3, :3] @ m + out[k][:3, 3], T[:3, :3] @ m + T[:3, 3], atol=1e-12)
 
 
+def test_turned_transforms_keep_or_centre_the_moved_source_centroid():
+    """The turns are the well-spread rotations but the identity, applied about where the estimate puts the source
+    centroid; the centred ones have the same rotations and put that centroid on the target's."""
+    from pranet.core.starts import centred_turned_transforms, turned_transforms
+
+    T = make_transform(Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix(), np.array([0.4, -0.1, 0.2]))
+    m, c = np.array([0.1, 0.2, -0.3]), np.array([-0.5, 0.3, 0.05])
+    turned, centred = turned_transforms(T, m, 24), centred_turned_transforms(T, m, c, 24)
+    Q = start_rotations(24)[1:]
+    assert turned.shape == centred.shape == (23, 4, 4)
+    for k in range(23):
+        np.testing.assert_allclose(turned[k][:3, :3], Q[k] @ T[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(centred[k][:3, :3], turned[k][:3, :3], atol=1e-12)
+        np.testing.assert_allclose(turned[k][:3, :3] @ m + turned[k][:3, 3], T[:3, :3] @ m + T[:3, 3], atol=1e-12)
+        np.testing.assert_allclose(centred[k][:3, :3] @ m + centred[k][:3, 3], c, atol=1e-12)
+
+
 def test_shifted_transforms_move_the_estimate_along_each_axis_nearest_first():
     T = make_transform(Rotation.from_rotvec([0.2, -0.1, 0.4]).as_matrix(), [1.0, 2.0, 3.0])
     moved = shifted_transforms(T, [0.1, 0.3])  # any distances
