@@ -275,10 +275,7 @@ def rescue(ctx: RegistrationContext) -> None:
         restarts = restart_transforms(centre.T_unit, c.src_n.mean(axis=0), local_rotations())
         offer_from_starts(ctx, batched(), restarts, RESTARTS, until_confident=False)
     if config.rescue_shifts and ctx.best is not None and not ctx.confident and not c.resolution.dense:
-        for T in shifted_transforms(ctx.best.T_unit, config.rescue_shifts):
-            ctx.offer(SHIFTED_ICP, T)
-            if ctx.confident:
-                break
+        offer_until_confident(ctx, SHIFTED_ICP, shifted_transforms(ctx.best.T_unit, config.rescue_shifts))
     if ctx.wide_icp is not None and not ctx.confident:
         with ctx.timer.stage("icp"):
             wide = ctx.wide_icp(c.src_unit, c.tgt_unit, np.eye(4), c.resolution)
@@ -286,18 +283,29 @@ def rescue(ctx: RegistrationContext) -> None:
     if far_from_confident(ctx, config.rescue_global_starts) and not c.resolution.dense:
         offer_from_starts(ctx, batched(), global_starts(ctx), GLOBAL_STARTS, until_confident=True)
     if far_from_confident(ctx, config.rescue_turns) and not c.resolution.dense:
-        assert ctx.best is not None
-        centroid = c.src_unit.mean(axis=0)
-        starts = np.concatenate(
-            [
-                turned_transforms(ctx.best.T_unit, centroid, TURNS),
-                centred_turned_transforms(ctx.best.T_unit, centroid, c.tgt_unit.mean(axis=0), CENTRED_TURNS),
-            ]
-        )
-        for T in starts:
-            ctx.offer(TURNED_ICP, T)
-            if ctx.confident:
-                break
+        offer_until_confident(ctx, TURNED_ICP, turned_starts(ctx))
+
+
+def offer_until_confident(ctx: RegistrationContext, name: str, estimates: Array) -> None:
+    """Each of ``estimates: (B, 4, 4)`` refined and offered as ``name``, in order, until one is confident."""
+    for T in estimates:
+        ctx.offer(name, T)
+        if ctx.confident:
+            return
+
+
+def turned_starts(ctx: RegistrationContext) -> Array:
+    """The best estimate turned about where it puts the source by ``TURNS`` well-spread rotations, then by
+    ``CENTRED_TURNS`` with the source centroid put on the target's: ``(TURNS + CENTRED_TURNS - 2, 4, 4)``."""
+    assert ctx.best is not None
+    c, T = ctx.clouds, ctx.best.T_unit
+    centroid = c.src_unit.mean(axis=0)
+    return np.concatenate(
+        [
+            turned_transforms(T, centroid, TURNS),
+            centred_turned_transforms(T, centroid, c.tgt_unit.mean(axis=0), CENTRED_TURNS),
+        ]
+    )
 
 
 def far_from_confident(ctx: RegistrationContext, fraction: float | None) -> bool:

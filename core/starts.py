@@ -112,12 +112,10 @@ def turned_transforms(T: npt.ArrayLike, source_centroid: npt.ArrayLike, n: int) 
 def centred_turned_transforms(
     T: npt.ArrayLike, source_centroid: npt.ArrayLike, target_centroid: npt.ArrayLike, n: int
 ) -> Array:
-    """``(n - 1, 4, 4)``: ``turned_transforms``, each then moved so that it puts the source centroid on
-    ``target_centroid`` (where a partial answer's translation is off as well as its rotation)."""
-    turned = turned_transforms(T, source_centroid, n)
-    moved = turned[:, :3, :3] @ np.asarray(source_centroid, dtype=np.float64) + turned[:, :3, 3]
-    turned[:, :3, 3] += np.asarray(target_centroid, dtype=np.float64) - moved
-    return turned
+    """``(n - 1, 4, 4)``: the rotations of ``turned_transforms``, each placed as ``start_transforms`` places a start,
+    the source centroid on ``target_centroid`` (where a partial answer's translation is off as well as its rotation)."""
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
+    return start_transforms(start_rotations(n)[1:] @ R, source_centroid, target_centroid)
 
 
 def shifted_transforms(T: npt.ArrayLike, distances: npt.ArrayLike) -> Array:

@@ -257,8 +257,8 @@ class RegisterResponse(BaseModel):
         "classical global match, for any initial pose, refined by ICP), 'restarts', 'wide_icp', 'shifted_icp', "
         "'global_starts' or 'turned_icp' (the rescues; 'shifted_icp': ICP from the best estimate moved along an "
         "axis, on sparse clouds; 'global_starts': the agent from the global mode's starts, on sparse clouds; "
-        "'turned_icp': ICP from the best estimate turned by the global mode's rotations, the last rescue on sparse "
-        "clouds)",
+        "'turned_icp': ICP from the best estimate turned by well-spread rotations, about where it puts the source "
+        "and with the source centroid on the target's, the last rescue on sparse clouds)",
     )
     candidates: dict[str, float] = Field(
         default_factory=dict, description="every candidate tried this request -> its best confidence"
