@@ -96,6 +96,11 @@ class ActionTable:
         """``(A,)``: the scale of each action."""
         return np.array([a.scale for a in self.actions])
 
+    @cached_property
+    def scale_members(self) -> np.ndarray:
+        """``(A, S)`` float: 1 where action ``a`` belongs to scale ``s`` (per-scale sums as one product)."""
+        return (self.scale_index[:, None] == np.arange(len(self.scales))).astype(np.float64)
+
     def indices_of_scale(self, scale: int) -> np.ndarray:
         return np.flatnonzero(self.scale_index == scale)
 

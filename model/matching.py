@@ -43,18 +43,12 @@ class SoftCorrespondence(nn.Module):
         return torch.cat([R.flatten(1), residual], dim=-1)
 
 
-def horn_rotation(H: Tensor, squarings: int = 24) -> Tensor:
-    """The rotation ``R`` maximising ``tr(R H)``, i.e. minimising ``Σ w_i ||R x_i - y_i||²`` for
-    ``H = Σ w_i x_i y_iᵀ: (B, 3, 3)`` (Horn 1987, unit quaternions). Always a proper rotation.
-
-    The quaternion is the top eigenvector of Horn's symmetric ``4×4`` matrix ``N``. ONNX has no
-    eigensolver, so it is found by repeated squaring of ``N + ||N||_F I`` (positive semi-definite,
-    same eigenvectors), which converges to ``q qᵀ`` as ``(λ₂/λ₁)^(2^k)``.
-    """
+def horn_matrix_written_out(H: Tensor) -> Tensor:
+    """Horn's symmetric ``4×4`` matrix ``N`` of ``H = Σ w_i x_i y_iᵀ: (B, 3, 3)``, entry by entry (Horn 1987)."""
     Sxx, Sxy, Sxz = H[:, 0, 0], H[:, 0, 1], H[:, 0, 2]
     Syx, Syy, Syz = H[:, 1, 0], H[:, 1, 1], H[:, 1, 2]
     Szx, Szy, Szz = H[:, 2, 0], H[:, 2, 1], H[:, 2, 2]
-    N = torch.stack(
+    return torch.stack(
         [
             torch.stack([Sxx + Syy + Szz, Syz - Szy, Szx - Sxz, Sxy - Syx], -1),
             torch.stack([Syz - Szy, Sxx - Syy - Szz, Sxy + Syx, Szx + Sxz], -1),
@@ -62,29 +56,76 @@ def horn_rotation(H: Tensor, squarings: int = 24) -> Tensor:
             torch.stack([Sxy - Syx, Szx + Sxz, Syz + Szy, -Sxx - Syy + Szz], -1),
         ],
         dim=-2,
-    )  # (B, 4, 4)
-    eye4 = torch.eye(4, dtype=H.dtype, device=H.device)
-    M = N + (N.flatten(1).norm(dim=1).view(-1, 1, 1) + 1e-12) * eye4
-    for _ in range(squarings):
-        M = M @ M
-        M = M / ((M * eye4).sum(dim=(1, 2)).view(-1, 1, 1) + 1e-30)  # ÷ trace (diagonal() exports to If nodes)
-    # M ≈ q qᵀ: its column with the largest diagonal entry is q_i q, well away from zero.
-    i = (M * eye4).sum(dim=-1).argmax(dim=-1)  # (B,)
-    col = torch.gather(M, 2, i.view(-1, 1, 1).expand(-1, 4, 1)).squeeze(-1)  # (B, 4)
-    w, x, y, z = (col / (col.norm(dim=-1, keepdim=True) + 1e-12)).unbind(-1)
+    )
+
+
+def rotation_written_out(q: Tensor) -> Tensor:
+    """The rotation of the quaternion ``q = (w, x, y, z): (B, 4)`` times ``|q|²``, entry by entry (the homogeneous
+    form: every entry is a quadratic form in ``q``, so no unit norm is assumed)."""
+    w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
-            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+            torch.stack([w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z], -1),
         ],
         dim=-2,
     )
 
 
-def logsumexp(x: Tensor, dim: int) -> Tensor:
-    """``log Σ exp(x)`` along ``dim`` (kept), stabilised by the maximum. Written out because onnxruntime's
-    ``ReduceLogSumExp`` kernel is several times slower on the CPU than these five element-wise ops."""
+def _quadratic_form_basis() -> Tensor:
+    """``(16, 9)``: ``vec(R) = vec(q qᵀ) @ B`` for ``rotation_written_out``, by polarisation of its quadratic forms."""
+    e = torch.eye(4, dtype=torch.float64)
+
+    def at(q: Tensor) -> Tensor:
+        return rotation_written_out(q.view(1, 4)).reshape(9)
+
+    return torch.stack(
+        [0.5 * (at(e[a] + e[b]) - at(e[a]) - at(e[b])) if a != b else at(e[a]) for a in range(4) for b in range(4)]
+    )
+
+
+# Both maps are linear, so each is one matrix product in the graph rather than the ~40 slicing, stacking and
+# arithmetic nodes written out above, three matching rounds a call (onnxruntime's cost at 128 points is mostly per
+# node: docs/DESIGN.md, "Fewer nodes in the network call").
+HORN_N_MAP = horn_matrix_written_out(torch.eye(9, dtype=torch.float64).view(9, 3, 3)).reshape(9, 16)
+QUATERNION_OUTER_TO_R = _quadratic_form_basis()
+
+# Squarings between two normalisations of the power iteration. After one, ``M``'s trace is 1 and its eigenvalues are
+# >= 0, so the largest is >= 1/4 and four squarings keep it >= 4^-16 ≈ 2e-10, far from float32's underflow.
+SQUARINGS_PER_NORMALISATION = 4
+
+
+def horn_rotation(H: Tensor, squarings: int = 24) -> Tensor:
+    """The rotation ``R`` maximising ``tr(R H)``, i.e. minimising ``Σ w_i ||R x_i - y_i||²`` for
+    ``H = Σ w_i x_i y_iᵀ: (B, 3, 3)`` (Horn 1987, unit quaternions). Always a proper rotation.
+
+    The quaternion is the top eigenvector of Horn's symmetric ``4×4`` matrix ``N``. ONNX has no
+    eigensolver, so it is found by repeated squaring of ``(N + ||N||_F I) / 4||N||_F`` (positive semi-definite,
+    trace 1, same eigenvectors), which converges to ``q qᵀ`` as ``(λ₂/λ₁)^(2^k)``.
+    """
+    N = (H.flatten(1) @ HORN_N_MAP.to(H)).view(-1, 4, 4)
+    eye4 = torch.eye(4, dtype=H.dtype, device=H.device)
+    M = N / (4.0 * N.flatten(1).norm(dim=1).view(-1, 1, 1) + 1e-12) + 0.25 * eye4
+    for k in range(1, squarings + 1):
+        M = M @ M
+        if k % SQUARINGS_PER_NORMALISATION == 0:
+            M = M / ((M * eye4).sum(dim=(1, 2), keepdim=True) + 1e-30)  # ÷ trace (diagonal() exports to If nodes)
+    # M ≈ q qᵀ: its column with the largest diagonal entry is q_i q, well away from zero; the rotation of that
+    # column alone is a proper rotation even where M has not quite reached rank one.
+    i = (M * eye4).sum(dim=-1).argmax(dim=-1)  # (B,)
+    col = torch.gather(M, 2, i.view(-1, 1, 1).expand(-1, 4, 1))  # (B, 4, 1)
+    outer = (col @ col.transpose(1, 2)).flatten(1)  # (B, 16)
+    R = outer @ QUATERNION_OUTER_TO_R.to(H) / ((col * col).sum(dim=(1, 2)).view(-1, 1) + 1e-30)
+    return R.view(-1, 3, 3)
+
+
+def logsumexp(x: Tensor, dim: int, stabilised: bool = True) -> Tensor:
+    """``log Σ exp(x)`` along ``dim`` (kept), stabilised by the maximum unless the caller knows ``exp`` cannot
+    overflow or underflow to an all-zero sum. Written out because onnxruntime's ``ReduceLogSumExp`` kernel is
+    several times slower on the CPU than these five element-wise ops."""
+    if not stabilised:
+        return x.exp().sum(dim=dim, keepdim=True).log()
     m = x.amax(dim=dim, keepdim=True).detach()
     return m + (x - m).exp().sum(dim=dim, keepdim=True).log()
 
@@ -99,9 +140,12 @@ def sinkhorn_with_slack(logits: Tensor, iterations: int) -> Tensor:
     padded = nn.functional.pad(logits, (0, 1, 0, 1), value=0.0)  # (B, N+1, M+1)
     real_rows = nn.functional.pad(torch.ones_like(logits[:, :, :1]), (0, 0, 0, 1))  # (B, N+1, 1): 0 on the slack
     real_cols = nn.functional.pad(torch.ones_like(logits[:, :1, :]), (0, 1, 0, 0))  # (B, 1, M+1)
-    for _ in range(iterations):
-        padded = padded - real_rows * logsumexp(padded, dim=2)
-        padded = padded - real_cols * logsumexp(padded, dim=1)
+    # Only the first normalisation needs the maximum: after it every entry is <= 0 (no overflow), and each row and
+    # column keeps an entry above -log((N+1)(M+1)) (the slack's 0, or what the last normalisation left), so no
+    # sum can underflow to zero. Two reductions and a subtraction fewer per normalisation.
+    for k in range(iterations):
+        padded = padded - real_rows * logsumexp(padded, dim=2, stabilised=k == 0)
+        padded = padded - real_cols * logsumexp(padded, dim=1, stabilised=False)
     return padded[:, :-1, :-1].exp()
 
 

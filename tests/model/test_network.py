@@ -140,6 +140,48 @@ def test_horn_rotation_matches_svd_kabsch_and_is_never_a_reflection():
         assert np.linalg.det(got[b]) == pytest.approx(1.0, abs=1e-5)
 
 
+@pytest.mark.parametrize("scale", [1e-5, 1.0, 1e4])
+def test_horn_rotation_holds_at_any_scale_of_h(scale):
+    """The power iteration normalises only every few squarings: tiny and huge cross-covariances must still give
+    Kabsch's rotation (no underflow or overflow in float32)."""
+    from scipy.spatial.transform import Rotation
+
+    from pranet.model.matching import horn_rotation
+
+    rng = np.random.default_rng(6)
+    R = Rotation.random(8, random_state=7).as_matrix()
+    x = rng.normal(size=(8, 30, 3))
+    y = np.einsum("bij,bnj->bni", R, x) + rng.normal(0.0, 0.05, x.shape)
+    xc, yc = x - x.mean(1, keepdims=True), y - y.mean(1, keepdims=True)
+    H = np.einsum("bni,bnj->bij", xc, yc) * scale
+    got = horn_rotation(torch.from_numpy(H).float()).double().numpy()
+    for b in range(8):
+        expected, _ = kabsch(x[b], y[b], np.ones(30))
+        np.testing.assert_allclose(got[b], expected, atol=2e-5)
+
+
+def test_horn_rotation_of_nothing_matched_is_the_identity():
+    """All mass in the slack gives ``H = 0``: the estimate must be "stay", not a degenerate matrix."""
+    from pranet.model.matching import horn_rotation
+
+    torch.testing.assert_close(horn_rotation(torch.zeros(2, 3, 3)), torch.eye(3).expand(2, 3, 3))
+
+
+def test_rotation_from_the_quaternion_outer_product_is_scipys():
+    """The linear map from ``q qᵀ`` to ``R`` (polarised from the written-out formula) against scipy, for unit and
+    unnormalised quaternions (the homogeneous form divides by ``|q|²``)."""
+    from scipy.spatial.transform import Rotation
+
+    from pranet.model.matching import QUATERNION_OUTER_TO_R
+
+    rng = np.random.default_rng(8)
+    q = rng.normal(size=(20, 4)) * rng.uniform(0.1, 10.0, (20, 1))  # (w, x, y, z), any norm
+    outer = np.einsum("bi,bj->bij", q, q).reshape(20, 16)
+    got = (outer @ QUATERNION_OUTER_TO_R.numpy() / (q * q).sum(1, keepdims=True)).reshape(20, 3, 3)
+    expected = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # scipy: scalar last
+    np.testing.assert_allclose(got, expected, atol=1e-12)
+
+
 def test_analytic_rewards_equal_the_numpy_labels():
     from scipy.spatial.transform import Rotation
 
@@ -175,6 +217,28 @@ def test_sinkhorn_with_slack_is_doubly_stochastic_and_drops_unmatched_points():
     b = ratio[:, :1, :] / a[:, :1, :]
     torch.testing.assert_close(ratio[:, 1:], (a * b)[:, 1:], atol=1e-4, rtol=1e-3)
     assert padded.shape == (2, 8, 10)
+
+
+def test_sinkhorn_normalised_without_the_maximum_equals_the_fully_stabilised_one():
+    """Only the first normalisation subtracts the maximum; the result must be the textbook log-domain Sinkhorn's
+    (every normalisation stabilised), also for logits far beyond exp's float32 range."""
+    from pranet.model.matching import logsumexp, sinkhorn_with_slack
+
+    def textbook(logits, iterations):
+        padded = torch.nn.functional.pad(logits, (0, 1, 0, 1))
+        rows = torch.nn.functional.pad(torch.ones_like(logits[:, :, :1]), (0, 0, 0, 1))
+        cols = torch.nn.functional.pad(torch.ones_like(logits[:, :1, :]), (0, 1, 0, 0))
+        for _ in range(iterations):
+            padded = padded - rows * logsumexp(padded, dim=2)
+            padded = padded - cols * logsumexp(padded, dim=1)
+        return padded[:, :-1, :-1].exp()
+
+    torch.manual_seed(9)
+    for scale, shift in [(1.0, 0.0), (50.0, 0.0), (300.0, -500.0), (300.0, 500.0)]:
+        logits = torch.randn(2, 40, 50) * scale + shift
+        got = sinkhorn_with_slack(logits, 5)
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got, textbook(logits, 5), atol=1e-5, rtol=1e-4)
 
 
 def analytic_net(n: int = 96) -> RewardNet:
