@@ -48,12 +48,12 @@ def probe(engine, shapes: np.ndarray, setting: str, pairs: int) -> dict[str, flo
         r2, t2 = isotropic_errors(reg.T_target_source, pair.T_gt)
         v1.append(r1)
         v2.append(r2)
-        ok.append(r2 < 1.0 and t2 < 0.01)
+        ok.append(bool(r2 < 1.0 and t2 < 0.01))
         t0 = time.perf_counter()
         service = engine.register(pair.source, pair.target, SERVICE_DEFAULT, pair_rng(99, setting, i))
         service_ms.append((time.perf_counter() - t0) * 1e3)
         r3, t3 = isotropic_errors(service.T_target_source, pair.T_gt)
-        service_ok.append(r3 < 1.0 and t3 < 0.01)
+        service_ok.append(bool(r3 < 1.0 and t3 < 0.01))
     return {
         "v1_mean": float(np.mean(v1)),
         "v1_median": float(np.median(v1)),
@@ -62,6 +62,8 @@ def probe(engine, shapes: np.ndarray, setting: str, pairs: int) -> dict[str, flo
         "ms_median": float(np.median(ms)),
         "service_success": float(np.mean(service_ok)),
         "service_ms_median": float(np.median(service_ms)),
+        # Per pair, in pair order, for paired differences between models (the same pairs for every model).
+        "per_pair": {"v1": [float(e) for e in v1], "v2": [float(e) for e in v2], "service_ok": service_ok},
     }
 
 

@@ -37,8 +37,17 @@ OP_TYPES = ("MatMul", "Gemm")
 # correspondence rotation, and one per-tensor activation scale for all of them cost the trained model up to 0.04
 # of reward drift (on rewards of order 0.18) for 0.4 of its 265 MFLOP per step. Node-name prefixes of the export.
 # The analytic reward layer (its constants are the action table) and the matching's sharpness network stay fp32
-# as well: quantizing them would perturb the rewards themselves, for no measurable time.
-FP32_PREFIXES = ("/shared", "/rotation_head", "/translation_head", "/analytic", "/correspondence/params")
+# as well: quantizing them would perturb the rewards themselves, for no measurable time. So do the matching's own
+# constant products (``/correspondence/MatMul_*``: Horn's matrix of H and the rotation of q qᵀ, exact linear maps
+# whose entries are 0, ±1 and ±2, not learned weights); its learned projections (``/correspondence/q``, ``/k``) do not.
+FP32_PREFIXES = (
+    "/shared",
+    "/rotation_head",
+    "/translation_head",
+    "/analytic",
+    "/correspondence/params",
+    "/correspondence/MatMul",
+)
 
 
 def quantize_graph(src: Path, dst: Path, per_channel: bool = True, reduce_range: bool = True) -> None:

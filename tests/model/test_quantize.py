@@ -75,6 +75,17 @@ def test_int8_graphs_are_listed_with_their_sha256(int8_dir):
     )
 
 
+def test_the_matchings_exact_linear_maps_stay_fp32(int8_dir):
+    """Horn's matrix of H and the rotation of q qᵀ are constant products inside the matching: quantizing their
+    operands would bend every estimated rotation. Only the learned projections of the matching are int8."""
+    import onnx
+
+    g = onnx.load(str(int8_dir / "score.int8.onnx")).graph
+    quantized = [n.name for n in g.node if n.op_type in ("MatMulInteger", "DynamicQuantizeLinear")]
+    assert any(name.startswith("/correspondence/q/") for name in quantized)
+    assert not [name for name in quantized if name.startswith(("/correspondence/MatMul", "/correspondence/Flatten"))]
+
+
 def test_int8_rewards_are_close_to_fp32(int8_dir):
     fp32 = RewardModel.load(int8_dir, threads=1)
     int8 = RewardModel.load(int8_dir, threads=1, precision="int8")
