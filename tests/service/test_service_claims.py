@@ -71,19 +71,21 @@ def test_a_queued_request_waits_its_turn_or_gets_504_once_its_time_is_up(tmp_pat
             assert [f.result().status_code for f in queued] == [200, 200]
     finally:
         server.stop()
-    # (b) The running request is not interruptible in its ICP (a large cloud): the queued one's 1 s runs out.
+    # (b) The running request is not interruptible in its global match and ICP (a large cloud, about a second
+    # of work on any machine we measured): the queued one's 0.3 s runs out while it waits. The running one
+    # passes its own check before it starts (decoded in about 0.1 s), so it holds the only slot throughout.
     (tmp_path / "b").mkdir()
-    server = start_live_server(tmp_path / "b", {**settings, "PRANET_REQUEST_TIMEOUT_S": "1"})
+    server = start_live_server(tmp_path / "b", {**settings, "PRANET_REQUEST_TIMEOUT_S": "0.3"})
     rng = np.random.default_rng(0)
     big = rng.normal(size=(150_000, 3)) * [1.0, 0.6, 0.3]
     # Global mode without agent steps: the three best starts are each refined by ICP, with no deadline check
-    # inside, for seconds on this cloud.
+    # inside.
     long_icp = {"source": b64(big), "target": b64(big + 0.01), "steps": [0, 0], "init": "global", "starts": 24}
     try:
         with httpx.Client(base_url=server.url, timeout=120) as client, ThreadPoolExecutor(2) as pool:
             first = pool.submit(client.post, "/register", json=long_icp)
             _wait_in_flight(client, 1)
-            time.sleep(0.3)  # in flight from its headers on: let its 2 MB body arrive and its registration start
+            time.sleep(0.15)  # in flight from its headers on: let its 5 MB body arrive and its registration start
             second = pool.submit(client.post, "/register", json=_tiny_body()).result()
             first.result()
         assert second.status_code == 504, second.text
