@@ -3,7 +3,8 @@ injected functions (reward model, ICP, global match), the timer, and the candida
 
 ``prepare`` turns the two input clouds into ``PreparedClouds``: checked, capped at ``MAX_WORKING_POINTS`` (a
 fixed-seed subset: memory and time stay bounded for million-point scans), mapped into the model's unit frame,
-measured (``core.resolution``) and resampled to the model's N points.
+measured (``core.resolution``) and sampled to the agent's N points: a smaller cloud is used whole, each point once
+(``agent_sample``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from pranet.core.agent import AgentResult, ScoreFn
 from pranet.core.confidence import CERTIFYING_MATCHES, Confidence, ConfidenceEstimator, certify
 from pranet.core.nearest import PointIndex, subsample
 from pranet.core.preprocess import Normalization, check_cloud, fit_normalization, resample
-from pranet.core.registration_config import RegistrationConfig
+from pranet.core.registration_config import MIN_AGENT_POINTS, RegistrationConfig
 from pranet.core.registration_types import Candidate, Deferred, GlobalMatchFn, IcpFn, IcpResult, PolishFn
 from pranet.core.resolution import Resolution, measure_resolution
 from pranet.core.se3 import Array, apply_transform, rotation_angle
@@ -64,6 +65,16 @@ class PreparedClouds:
         return self.norm.to_unit(np.zeros((1, 3)))[0]
 
 
+def agent_sample(points: Array, n_points: int, rng: np.random.Generator) -> Array:
+    """``n_points`` distinct rows of ``points`` in random order, or all of them when there are fewer, but never fewer
+    than ``MIN_AGENT_POINTS`` (the network's k-nearest-neighbour graph needs that many).
+
+    A repeated point adds nothing to the matching and weighs its soft assignment toward itself, so a cloud smaller
+    than the agent's N is not padded with repeats (docs/DESIGN.md, "Every point for the paper's agent").
+    """
+    return resample(points, min(n_points, max(len(points), MIN_AGENT_POINTS)), rng)
+
+
 def prepare(
     source: npt.ArrayLike,
     target: npt.ArrayLike,
@@ -87,8 +98,8 @@ def prepare(
         src_index=src_index,
         tgt_index=tgt_index,
         resolution=measure_resolution(src_index, tgt_index),
-        src_n=resample(src_unit, n_points, rng),
-        tgt_n=resample(tgt_unit, n_points, rng),
+        src_n=agent_sample(src_unit, n_points, rng),
+        tgt_n=agent_sample(tgt_unit, n_points, rng),
     )
 
 

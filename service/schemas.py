@@ -11,7 +11,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag
 
 from pranet.core.confidence import CERTIFYING_MATCHES
-from pranet.core.registration_config import MAX_AGENT_POINTS, MIN_AGENT_POINTS, SERVICE_DEFAULT
+from pranet.core.registration_config import MAX_AGENT_POINTS, MIN_AGENT_POINTS, PAPER_AGENT_POINTS, SERVICE_DEFAULT
 from pranet.core.registration_types import CandidateName, RescueName
 from pranet.core.starts import DEFAULT_STARTS, MAX_STARTS
 from pranet.core.wire import BYTES_PER_POINT, ENCODING, encoded_length
@@ -169,8 +169,9 @@ class RegisterRequest(_Strict):
     )
     agent_points: json_int(ge=MIN_AGENT_POINTS, le=MAX_AGENT_POINTS) | None = Field(
         SERVICE_DEFAULT.agent_points,
-        description="points per cloud the agent's network sees (resampled; ICP and the confidence use every point); "
-        "null: the model's own (the shipped model was trained on 256, which the paper's configurations use)",
+        description="points per cloud the agent's network sees (a random subset, each point once, all of a smaller "
+        f"cloud; ICP and the confidence use every point); null: the model's own; the paper's configurations use "
+        f"{PAPER_AGENT_POINTS}",
     )
     starts: json_int(ge=1, le=MAX_STARTS) = Field(
         DEFAULT_STARTS,

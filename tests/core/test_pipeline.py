@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 from pranet.core.confidence import ConfidenceEstimator
 from pranet.core.metrics import isotropic_errors
 from pranet.core.pipeline import STAGES, register
-from pranet.core.registration_config import RegistrationConfig
-from pranet.core.registration_context import RANK_QUERIES, prepare
+from pranet.core.registration_config import MIN_AGENT_POINTS, PAPER_AGENT_POINTS, RegistrationConfig
+from pranet.core.registration_context import RANK_QUERIES, agent_sample, prepare
 from pranet.core.registration_types import GlobalAnswer, IcpResult
 from pranet.core.starts import geodesic_distances, start_rotations
 
@@ -433,15 +433,28 @@ def test_an_estimate_offered_again_is_not_refined_again():
     assert len(refined) == 2
 
 
+def test_a_tiny_cloud_is_padded_to_the_networks_minimum_and_a_larger_one_sampled_without_repeats():
+    rng = np.random.default_rng(0)
+    tiny = rng.normal(size=(10, 3))
+    padded = agent_sample(tiny, 128, rng)
+    assert len(padded) == MIN_AGENT_POINTS and {tuple(p) for p in padded} == {tuple(p) for p in tiny}
+    cloud = rng.normal(size=(500, 3))
+    sampled = agent_sample(cloud, 128, rng)
+    assert len(np.unique(sampled, axis=0)) == 128 and np.isin(sampled, cloud).all()
+    whole = agent_sample(cloud, 1024, rng)
+    assert len(whole) == 500 and sorted(map(tuple, whole)) == sorted(map(tuple, cloud))
+
+
 def test_the_agent_sees_the_configs_number_of_points_or_the_models():
-    """``agent_points`` resamples both clouds to that many points for the agent (the service's 128); ``None``: the
-    model's ``n_points``. Out-of-range counts are refused."""
+    """``agent_points`` samples both clouds to that many points for the agent (the service's 128), each point once, and
+    a smaller cloud whole; ``None``: the model's ``n_points``. Out-of-range counts are refused."""
     src, tgt, T = rotated_problem(20.0)
-    seen = []
+    seen, targets = [], []
 
     class Recording(RangeLimitedOracle):
         def score_fn(self, target):
             seen.append(len(target))
+            targets.append(np.asarray(target))
             return lambda source, _target: (seen.append(len(source)), -np.ones(len(self.table)))[1]
 
     scorer = Recording(src, tgt, T)
@@ -450,6 +463,10 @@ def test_the_agent_sees_the_configs_number_of_points_or_the_models():
     seen.clear()
     register(src, tgt, scorer, np.random.default_rng(0))
     assert set(seen) == {scorer.n_points} == {300}
-    for bad in (0, 8, 257, 10**6):
+    seen.clear()
+    targets.clear()
+    register(src, tgt, scorer, np.random.default_rng(0), RegistrationConfig(agent_points=PAPER_AGENT_POINTS))
+    assert set(seen) == {300} and len(np.unique(targets[0], axis=0)) == 300  # all 300, none repeated
+    for bad in (0, 8, PAPER_AGENT_POINTS + 1, 10**6):
         with pytest.raises(ValueError, match="agent_points"):
             RegistrationConfig(agent_points=bad)

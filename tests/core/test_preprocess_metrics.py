@@ -26,13 +26,13 @@ def test_prepare_resamples_seeded_rows_of_the_unit_clouds():
     rng = np.random.default_rng(1)
     a, b = rng.standard_normal((1000, 3)), rng.standard_normal((50, 3))
     p1, p2 = prepare(a, b, 256, np.random.default_rng(3)), prepare(a, b, 256, np.random.default_rng(3))
-    assert p1.src_n.shape == p1.tgt_n.shape == (256, 3)
+    assert p1.src_n.shape == (256, 3) and p1.tgt_n.shape == (50, 3)  # the smaller cloud whole, no repeats
     np.testing.assert_array_equal(p1.src_n, p2.src_n)
     np.testing.assert_array_equal(p1.tgt_n, p2.tgt_n)
-    # Every resampled row is a row of the unit-frame cloud (without replacement from 1000, with it from 50).
+    # Every resampled row is a row of the unit-frame cloud, each once.
     unit_a = p1.norm.to_unit(a)
     assert all(np.isclose(unit_a, row).all(axis=1).any() for row in p1.src_n)
-    assert len(np.unique(p1.src_n, axis=0)) == 256
+    assert len(np.unique(p1.src_n, axis=0)) == 256 and len(np.unique(p1.tgt_n, axis=0)) == 50
 
 
 @pytest.mark.parametrize(

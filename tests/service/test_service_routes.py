@@ -13,6 +13,8 @@ from numpy.testing import assert_allclose
 from scipy.spatial.transform import Rotation
 from service_helpers import FEW_STEPS, b64, rotation_error_deg, synthetic_pair
 
+from pranet.core.registration_config import PAPER_AGENT_POINTS
+
 
 def test_health_is_open_and_minimal(http: httpx.Client) -> None:
     r = http.get("/health")
@@ -254,7 +256,7 @@ def test_exit_checks_stop_the_agent_once_icp_converges(http: httpx.Client) -> No
     assert fast["status"] == "converged" and fast["rescued"] is None
     assert rotation_error_deg(np.array(fast["rotation"]), T_gt[:3, :3]) < 0.05
     paper = {"source": b64(source), "target": b64(target), "exit_checks": [], "walk": False, "polish": False}
-    paper.update(global_match=False, rescue=False, robust_icp=False, agent_points=None)
+    paper.update(global_match=False, rescue=False, robust_icp=False, agent_points=PAPER_AGENT_POINTS)
     full = http.post("/register", json=paper).json()
     assert full["exit_checks"] == [] and len(full["trajectory"]) == 60  # the paper's PRANet-v2
     assert rotation_error_deg(np.array(full["rotation"]), T_gt[:3, :3]) < 0.05

@@ -99,7 +99,7 @@ def request_body(
 ) -> bytes:
     """``adaptive``: the service's default request (exit checks, global match, rescues, the walk, the polish, the
     robust ICP); else the paper's v2: a network call for every step, then least-squares ICP, nothing else."""
-    from pranet.core.registration_config import SERVICE_DEFAULT
+    from pranet.core.registration_config import PAPER_AGENT_POINTS, SERVICE_DEFAULT
     from pranet.core.wire import encode_cloud
 
     body: dict[str, Any] = {
@@ -116,7 +116,7 @@ def request_body(
         "robust_icp": adaptive,
     }
     if not adaptive:
-        body["agent_points"] = None  # the model's own, as the paper's v2 in process
+        body["agent_points"] = PAPER_AGENT_POINTS  # as the paper's v2 in process
     if steps is not None:
         body["steps"] = list(steps)
     return json.dumps(body).encode()
