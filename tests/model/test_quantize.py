@@ -64,7 +64,8 @@ def test_int8_graphs_are_listed_with_their_sha256(int8_dir):
             n.op_type in OP_TYPES and n.input[1] in constants and not n.name.startswith(FP32_PREFIXES) for n in g.node
         )
 
-    assert (int8_dir / "score.int8.onnx").stat().st_size < 0.75 * (int8_dir / "score.onnx").stat().st_size
+    # The cross-attention block's weights stay fp32 (FP32_PREFIXES): the int8 score graph is about 0.8 of the fp32 one.
+    assert (int8_dir / "score.int8.onnx").stat().st_size < 0.85 * (int8_dir / "score.onnx").stat().st_size
     ops = {
         g: [n.op_type for n in onnx.load(str(int8_dir / g)).graph.node] for g in ("score.int8.onnx", "head.int8.onnx")
     }
