@@ -11,7 +11,7 @@ from service_helpers import b64, bumpy_shape, rotation_error_deg
 
 from pranet.core.starts import start_rotations
 
-N_POINTS = 256  # the clouds below have exactly the model's N: resampling only permutes them
+N_POINTS = 256  # the clouds below have at most the model's N: the agent sees them whole, each point once
 
 
 def moved_pair(angle_deg: float, axis=(1.0, -2.0, 0.5), seed: int = 0):
@@ -33,7 +33,7 @@ def post(http: httpx.Client, **body) -> dict:
 
 
 def test_model_has_the_points_these_tests_assume(http: httpx.Client) -> None:
-    assert http.get("/model").json()["n_points"] == N_POINTS
+    assert http.get("/model").json()["n_points"] >= N_POINTS
 
 
 def test_seed_and_policy_reach_the_agent(http: httpx.Client) -> None:
@@ -59,6 +59,9 @@ def test_early_stop_ends_the_fine_phase_on_an_aligned_pair(http: httpx.Client) -
     source = bumpy_shape(N_POINTS)
     common = {"source": b64(source), "target": b64(source), "steps": [0, 40], "icp": False, "rescue": False}
     common["walk"] = False  # the walk would end the scale on arrival as well
+    # Every point, as the paper's agent alone: at the service's 128 the agent's estimate is a degree coarser (model
+    # 2.2.0 walks 9 fine steps off an aligned pair there), which the service leaves to ICP.
+    common["agent_points"] = None
     assert len(post(http, **common, early_stop=False)["trajectory"]) == 40
     stopped = post(http, **common, early_stop=True)
     assert len(stopped["trajectory"]) < 5, actions(stopped)
@@ -73,7 +76,8 @@ def test_the_walk_needs_a_few_network_calls_where_the_paper_needs_one_per_step(h
     matching is a soft ICP: fine at 20°, lost at 45°), while ICP and the global match would still find the answer
     in a default request, so only the agent alone tells them apart."""
     source, target, R = moved_pair(45.0)
-    common = {"source": b64(source), "target": b64(target), "icp": False, "rescue": False}
+    # Every point, as the paper's agent alone (at the service's 128, model 2.2.0 ends 3.3° off here; ICP finishes it).
+    common = {"source": b64(source), "target": b64(target), "icp": False, "rescue": False, "agent_points": None}
     walked, paper = post(http, **common), post(http, **common, walk=False)
     assert paper["network_calls"] >= 20  # the 60 steps, less the translations re-scored by the head alone
     assert walked["network_calls"] <= paper["network_calls"] // 3, (walked["network_calls"], paper["network_calls"])
