@@ -38,7 +38,8 @@ def global_runner(engine: Any, name: str, n_starts: int, refine_top: int, schedu
     from pranet.core.registration_config import PAPER_V2
     from pranet.training.evaluate import MethodOutput, Runner
 
-    # The model's own N, not the paper's 1024: a batch of n_starts sources each step, each call about 11x the cost at 1024 points.
+    # The model's own N, not the paper's 1024: a batch of n_starts sources each step, each call about 11x the cost
+    # at 1024 points.
     config = PAPER_V2.with_(
         init="global", n_starts=n_starts, refine_top=refine_top, schedule=schedule, agent_points=None
     )
