@@ -5,8 +5,8 @@ validation shapes.
     python experiments/agent_points_probe.py model/default /tmp/m5 --points 256,1024 --pairs 150 --json out.json
 
 Each (model, points) row prints mean / median rotation error of v1 and v2 per setting; ``--json`` keeps every
-pair's errors (the same pairs for every row) for paired differences. Backs docs/DESIGN.md, "More points for the
-agent alone".
+pair's errors (the same pairs for every row) for paired differences. Backs docs/DESIGN.md, "Every point for the
+paper's agent".
 """
 
 from __future__ import annotations
@@ -27,10 +27,11 @@ from pranet.training.samples import make_pair, pair_rng
 
 def run(engine: Engine, shapes: np.ndarray, setting: str, n: int, pairs: int, offset: int) -> dict[str, list[float]]:
     v1, v2, ms = [], [], []
+    config = PAPER_V2.with_(agent_points=n)
     for i in range(offset, offset + pairs):
         pair = make_pair(shapes[i % len(shapes)], setting, pair_rng(99, setting, i))
         t0 = time.perf_counter()
-        reg = engine.register(pair.source, pair.target, PAPER_V2.with_(agent_points=n), pair_rng(99, setting, i))
+        reg = engine.register(pair.source, pair.target, config, pair_rng(99, setting, i))
         ms.append(1e3 * (time.perf_counter() - t0))
         v1.append(float(isotropic_errors(reg.agent_T_target_source, pair.T_gt)[0]))
         v2.append(float(isotropic_errors(reg.T_target_source, pair.T_gt)[0]))
