@@ -72,9 +72,9 @@ def test_the_walk_needs_a_few_network_calls_where_the_paper_needs_one_per_step(h
     the same accuracy with a fraction of the paper protocol's network calls, and ``network_calls`` says so.
 
     This is also what the trained model is for: the agent alone lands within a degree of a 45° turn of a clean
-    shape (measured 0.2° with model 2.1.0 at its 256 points). A network with random weights ends 34-37° off on the same pairs (its position-only
-    matching is a soft ICP: fine at 20°, lost at 45°), while ICP and the global match would still find the answer
-    in a default request, so only the agent alone tells them apart."""
+    shape (measured 0.2° with model 2.1.0 at its 256 points). A network with random weights ends 34-37° off on the
+    same pairs (its position-only matching is a soft ICP: fine at 20°, lost at 45°), while ICP and the global match
+    would still find the answer in a default request, so only the agent alone tells them apart."""
     source, target, R = moved_pair(45.0)
     # Every point, as the paper's agent alone (at the service's 128, model 2.2.0 ends 3.3° off here; ICP finishes it).
     common = {"source": b64(source), "target": b64(target), "icp": False, "rescue": False, "agent_points": None}
