@@ -56,8 +56,6 @@ def check_cloud(points: npt.ArrayLike, name: str, min_points: int = 3) -> Array:
         raise DegenerateCloudError(f"{name}: all points are identical")
     if sv[1] <= 1e-6 * sv[0]:
         raise DegenerateCloudError(f"{name}: points are collinear; a rotation about their line is undetermined")
-    if sv[2] <= 1e-6 * sv[0]:
-        raise DegenerateCloudError(f"{name}: points are coplanar; registration needs 3-D extent")
     return p
 
 

@@ -37,6 +37,15 @@ SPARSE_FROM = 0.01
 # point's normal describes the surface: ICP finishes point-to-plane, the polish runs, the ICP target's normals may
 # come from further off (``engine.icp``, ``engine.polish``; docs/DESIGN.md, "ICP at the data's resolution").
 SMOOTH_UP_TO = 0.25
+# A target is planar as a whole when its points lie within PLANAR_UP_TO spacings (RMS) of one plane, or no further
+# from it than PLANAR_OVER_FLATNESS times their local out-of-plane spread (``flatness``: a flat shape under sensor
+# noise). A door, a leaf, a flat figure: 7 of ModelNet40's 1266 test shapes, exactly flat (planarity 0.001 and less,
+# the next 0.57), and under the noisy setting's jitter 1.13-1.17 times their flatness (every other shape 1.23 and
+# more). Its normals all agree, so point-to-plane ICP pins only 3 of the 6 degrees of freedom and slides within the
+# plane: from the agent's 0.30° it ended 3.4° off and `converged`. A planar cloud is not smooth
+# (``Resolution.smooth``) and its ICP runs point-to-point (``engine.icp``): docs/DESIGN.md, "Flat clouds".
+PLANAR_UP_TO = 0.25
+PLANAR_OVER_FLATNESS = 1.2
 
 
 def median_spacing(points: npt.ArrayLike | PointIndex, probes: int = SPACING_PROBES, seed: int = 0) -> float:
@@ -94,6 +103,18 @@ def smallest_eigenvalues(covariance: Array) -> Array:
     return np.maximum(smallest, 0.0)
 
 
+def planarity(points: npt.ArrayLike | PointIndex, spacing: float, probes: int = SPACING_PROBES, seed: int = 0) -> float:
+    """How far ``points: (N, 3)`` are from one plane as a whole: the RMS distance of ``probes`` fixed-seed points to
+    their best-fitting plane (the smallest singular value of the centred points over the square root of their
+    number), in spacings. 0 on a flat cloud; inf when the spacing is unknown (0)."""
+    p = points.points if isinstance(points, PointIndex) else np.asarray(points, dtype=np.float64)
+    if spacing <= 0 or len(p) < 3:
+        return float("inf")
+    probe = subsample(p, probes, seed=seed)
+    sv = np.linalg.svd(probe - probe.mean(axis=0), compute_uv=False)
+    return float(sv[2] / math.sqrt(len(probe))) / spacing
+
+
 def cloud_radius(points: npt.ArrayLike) -> float:
     """The largest distance of a point of ``points: (N, 3)`` from their centroid."""
     p = np.asarray(points, dtype=np.float64)
@@ -110,6 +131,9 @@ class Resolution:
     # the status threshold (``core.confidence``) and what runs on dense clouds (``dense``). inf: not measured,
     # counted as sparse.
     relative_spacing: float = math.inf
+    # The target's RMS distance from its best plane, in spacings (unit-free; ``planar``). inf: not measured, counted
+    # as not planar.
+    planarity: float = math.inf
 
     @property
     def dense(self) -> bool:
@@ -117,9 +141,18 @@ class Resolution:
         return self.relative_spacing <= SPARSE_FROM
 
     @property
+    def planar(self) -> bool:
+        """Whether the target lies in one plane: ``planarity`` at most ``PLANAR_UP_TO``, or at most
+        ``PLANAR_OVER_FLATNESS`` times the surface's own spread (``flatness``), a plane under noise."""
+        limit = max(PLANAR_UP_TO, PLANAR_OVER_FLATNESS * self.flatness)
+        return math.isfinite(self.planarity) and self.planarity <= limit
+
+    @property
     def smooth(self) -> bool:
-        """Whether the surface is smooth at its resolution (``flatness`` at most ``SMOOTH_UP_TO``)."""
-        return self.flatness <= SMOOTH_UP_TO
+        """Whether the surface is smooth at its resolution (``flatness`` at most ``SMOOTH_UP_TO``) and not one plane:
+        a plane's normals all agree, so point-to-plane alignment, which smooth surfaces finish with, would leave it
+        free to slide within the plane."""
+        return self.flatness <= SMOOTH_UP_TO and not self.planar
 
     @property
     def voxel(self) -> float:
@@ -135,14 +168,16 @@ class Resolution:
 
     def scaled(self, factor: float) -> Resolution:
         """The same resolution in units scaled by ``factor`` (e.g. world -> unit frame)."""
-        return Resolution(self.spacing * factor, self.flatness, self.relative_spacing)
+        return Resolution(self.spacing * factor, self.flatness, self.relative_spacing, self.planarity)
 
 
 def measure_resolution(source: Array | PointIndex, target: Array | PointIndex) -> Resolution:
     """The resolution of a pair: the coarser spacing of ``source: (N, 3)`` and ``target: (M, 3)`` (or their
-    indexes, built once per registration), so that every scale resolves both clouds, the target's flatness, and
-    the spacing relative to the target's radius."""
+    indexes, built once per registration), so that every scale resolves both clouds, the target's flatness, the
+    spacing relative to the target's radius, and the target's planarity."""
     src = source if isinstance(source, PointIndex) else PointIndex(source)
     tgt = target if isinstance(target, PointIndex) else PointIndex(target)
     spacing = max(median_spacing(src, seed=0), median_spacing(tgt, seed=1))
-    return Resolution(spacing, flatness(tgt, spacing), spacing / cloud_radius(tgt.points))
+    return Resolution(
+        spacing, flatness(tgt, spacing), spacing / cloud_radius(tgt.points), planarity(tgt, spacing, seed=1)
+    )

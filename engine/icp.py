@@ -92,6 +92,17 @@ def icp_target(target: Array, resolution: Resolution, normals: bool = True):  # 
     return cloud
 
 
+def point_to_point_only(stages: Sequence[IcpStage]) -> tuple[IcpStage, ...]:
+    """``stages`` with every method point-to-point, a stage that repeats the one before it dropped: a planar target's
+    normals all agree and pin only 3 of the 6 degrees of freedom (``Resolution.planar``)."""
+    plan: list[IcpStage] = []
+    for _, distance in stages:
+        stage = (POINT_TO_POINT, distance)
+        if not plan or plan[-1] != stage:
+            plan.append(stage)
+    return tuple(plan)
+
+
 def make_icp(
     stages: Sequence[IcpStage] = DEFAULT_ICP_STAGES,
     max_iterations: int = 30,
@@ -100,8 +111,9 @@ def make_icp(
 ):  # -> IcpFn
     """An ``IcpFn`` running Open3D's ICP from an estimate, one pass per ``(method, max_distance)`` stage, each
     from the previous one's result (``DEFAULT_ICP_STAGES``: point-to-plane at 8, 4 and 2 spacings, then
-    point-to-point at 2 and 1; the point-to-point stages are skipped where the target is planar at its resolution,
-    ``Resolution.smooth``). ``kernel``: on sparse clouds (not ``Resolution.dense``), the point-to-plane stages weigh
+    point-to-point at 2 and 1; the point-to-point stages are skipped where the surface is smooth at its resolution,
+    ``Resolution.smooth``, and every stage runs point-to-point where the target is one plane, ``Resolution.planar``).
+    ``kernel``: on sparse clouds (not ``Resolution.dense``), the point-to-plane stages weigh
     each match by Tukey's biweight with a scale of this many spacings (``core.registration_config.ICP_KERNEL``);
     ``None``: least squares everywhere.
     ``window_unit``: the stages' distances are in spacings of the data (``"spacing"``) or
@@ -141,6 +153,8 @@ def make_icp(
         return estimations[method]
 
     def stages_for(resolution: Resolution) -> tuple[IcpStage, ...]:
+        if resolution.planar:
+            return point_to_point_only(stages)
         finish = tuple(s for s in stages if not (resolution.smooth and s[0] == POINT_TO_POINT))
         return finish or stages  # a point-to-point-only list runs as it is
 

@@ -21,7 +21,8 @@ _errors = {
     "with more points than PRANET_MAX_POINTS (PRANET_MAX_LIST_POINTS for a JSON list); the message gives the count and "
     "the fix",
     415: "Content-Type is not application/json",
-    422: "invalid request: unknown field, bad value, or a degenerate cloud (NaN/inf, < 3 points, coplanar, ...)",
+    422: "invalid request: unknown field, bad value, or a degenerate cloud (NaN/inf, < 3 points, identical or "
+    "collinear points)",
     503: "model not loaded, or too many registrations in progress (retry later)",
     504: "the registration ran past the server's time limit",
 }

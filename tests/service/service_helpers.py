@@ -47,3 +47,15 @@ def bumpy_shape(n: int = 512, seed: int = 0) -> np.ndarray:
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     r = 1 + 0.15 * np.sin(3 * u[:, 0]) * np.cos(2 * u[:, 1]) + 0.1 * np.sin(4 * u[:, 2])
     return (u * r[:, None] * [0.8, 0.55, 0.35]).astype(np.float32).astype(np.float64)
+
+
+def flat_shape(n: int = 1024, seed: int = 0) -> np.ndarray:
+    """``(n, 3)`` points filling a flat outline in the plane z = 0.2 (a 1.2 x 0.5 plate with a disc of radius 0.3
+    on one end, off its axis, as a door or a leaf is flat): no symmetry within the plane, so every rotation of
+    it is recoverable, while its normals all agree."""
+    rng = np.random.default_rng(seed)
+    plate = rng.uniform([-0.6, -0.25], [0.6, 0.25], (n, 2))
+    angle, radius = rng.uniform(0, 2 * np.pi, n), 0.3 * np.sqrt(rng.uniform(0, 1, n))
+    disc = np.c_[0.5 + radius * np.cos(angle), 0.2 + radius * np.sin(angle)]
+    xy = np.where(rng.uniform(size=(n, 1)) < 0.6, plate, disc)
+    return np.c_[xy, np.full(n, 0.2)].astype(np.float32).astype(np.float64)

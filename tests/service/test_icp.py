@@ -205,31 +205,60 @@ def test_bad_stages_are_refused(stages):
         make_icp(stages)
 
 
-def test_point_to_point_stages_are_skipped_where_the_surface_is_planar_at_its_resolution():
-    """A smooth dense surface (flatness 0) finishes with point-to-plane only; a rough one runs every stage. An ICP
-    stand-in records the stages Open3D is asked for (here: by the windows it passes)."""
-    from pranet.engine import icp as icp_module
+def test_the_stages_follow_the_surface_smooth_rough_or_one_plane():
+    """A smooth dense surface (flatness 0) finishes with point-to-plane only; a rough one runs every stage; a planar
+    target runs every window point-to-point (8, 4, 2, 1 spacings: the repeated 2 once). An ICP stand-in records the
+    stages Open3D is asked for (window and estimation)."""
+    import open3d as o3d
 
     calls = []
-    real = icp_module.make_icp
-
     source, target, _ = far_noisy_pair(1, angle_deg=5.0)
-    for flat, expected in ((0.0, 3), (0.5, 5)):
-        import open3d as o3d
+    p2p = o3d.pipelines.registration.TransformationEstimationPointToPoint
+    cases = (
+        (Resolution(0.025, flatness=0.0), [8, 4, 2], [False] * 3),
+        (Resolution(0.025, flatness=0.5), [8, 4, 2, 2, 1], [False, False, False, True, True]),
+        (Resolution(0.025, flatness=0.0, planarity=0.0), [8, 4, 2, 1], [True] * 4),
+    )
+    original = o3d.pipelines.registration.registration_icp
 
-        original = o3d.pipelines.registration.registration_icp
+    def spy(src, tgt, distance, init, estimation, criteria):
+        calls.append((round(distance / 0.025, 6), isinstance(estimation, p2p)))
+        return original(src, tgt, distance, init, estimation, criteria)
 
-        def spy(src, tgt, distance, init, estimation, criteria, _calls=calls, _orig=original):
-            _calls.append(distance)
-            return _orig(src, tgt, distance, init, estimation, criteria)
-
-        o3d.pipelines.registration.registration_icp = spy
-        try:
+    o3d.pipelines.registration.registration_icp = spy
+    try:
+        for resolution, windows, point_to_point in cases:
             calls.clear()
-            real()(source, target, np.eye(4), Resolution(0.025, flatness=flat))
-        finally:
-            o3d.pipelines.registration.registration_icp = original
-        assert len(calls) == expected, (flat, calls)
+            make_icp()(source, target, np.eye(4), resolution)
+            assert calls == list(zip(windows, point_to_point, strict=True)), (resolution, calls)
+    finally:
+        o3d.pipelines.registration.registration_icp = original
+
+
+def test_a_tilted_flat_shape_reaches_the_truth_point_to_point_where_point_to_plane_slides():
+    """Oracle: a flat outline turned out of its plane (6° about an oblique axis) and shifted, the same points in
+    another order. Its normals all agree, so point-to-plane ICP pins 3 of the 6 degrees of freedom and slides within
+    the plane; the planar resolution runs point-to-point and lands on the truth."""
+    from dataclasses import replace
+
+    from service_helpers import flat_shape
+
+    from pranet.core.resolution import measure_resolution
+
+    tilt = Rotation.from_rotvec([0.7, -0.4, 0.3]).as_matrix()
+    icp, slid = make_icp(), 0
+    for seed in range(4):
+        source = flat_shape(seed=seed) @ tilt.T
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(np.deg2rad(6.0) * np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)).as_matrix()
+        T[:3, 3] = [0.03, -0.02, 0.0]
+        target = (source @ T[:3, :3].T + T[:3, 3])[np.random.default_rng(seed).permutation(len(source))]
+        resolution = measure_resolution(source, target)
+        assert resolution.planar
+        assert success(icp(source, target, np.eye(4), resolution).transform, T), seed
+        as_curved = replace(resolution, planarity=float("inf"))  # smooth: point-to-plane only
+        slid += not success(icp(source, target, np.eye(4), as_curved).transform, T)
+    assert slid >= 3  # measured: all 4 slide, 0.5-67° and 0.07-0.09 off
 
 
 def test_proceed_false_ends_the_refinement_after_the_first_stage():
