@@ -95,8 +95,9 @@ def main() -> None:
                     f" {row['service_ms_median']:6.0f} ms",
                     flush=True,
                 )
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=2))
+                # After every row: a probe cut short (the session's end) keeps the settings it finished.
+                if args.json:
+                    args.json.write_text(json.dumps(rows, indent=2))
 
 
 if __name__ == "__main__":
