@@ -124,7 +124,10 @@ def test_the_viewpoint_moves_the_frame_not_the_answer():
     rot, trans = isotropic_errors(found, moved)
     assert rot < 10.0 and trans < 0.1, (rot, trans)
     same = kiss_matcher_global_match(source, target, resolution, 0)
-    np.testing.assert_allclose(found[:3, :3], same[:3, :3], atol=1e-5)
+    # Not bit-equal: (source - o) - (-o) rounds differently from source in the last bits, which can move a point
+    # across one of KISS-Matcher's voxel boundaries; on CI's CPU that turned the rotation by 0.06°.
+    apart, _ = isotropic_errors(found, same)
+    assert apart < 0.25, apart
 
 
 def test_an_rgbd_pair_is_matched_seen_from_its_sensors(scans_dir):
