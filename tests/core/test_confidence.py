@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pranet.core.confidence import INLIER_SPACINGS, ConfidenceEstimator, estimate_confidence
+from pranet.core.confidence import INLIER_SPACINGS, Confidence, ConfidenceEstimator, estimate_confidence
 from pranet.core.nearest import nearest_distances, subsample
 from pranet.core.resolution import measure_resolution
 from pranet.core.se3 import apply_transform, make_transform
@@ -209,3 +209,19 @@ def test_enough_feature_matches_that_icp_kept_certify_a_global_answer():
         (10 * n, 0.0, 0.0, False),
     ):
         assert certify(low, *args) == low, args
+
+
+def _confidence(score: float, status: str, matches: int = 0) -> Confidence:
+    return Confidence(score, status, score, 1.0, score, score, 0.01, 0.01, matches)
+
+
+def test_a_certificate_outranks_a_higher_score_but_not_the_status():
+    """Converged above suspect; among converged results, one certified by feature matches above a higher-scoring
+    one judged by its score alone (a scene can fool the score); otherwise the higher score."""
+    certified = _confidence(0.51, "converged", matches=63)
+    tighter = _confidence(0.56, "converged")
+    assert certified.outranks(tighter) and not tighter.outranks(certified)
+    assert _confidence(0.6, "converged", matches=30).outranks(certified)
+    assert not _confidence(0.39, "suspect").outranks(_confidence(0.2, "converged", matches=30))
+    assert tighter.outranks(_confidence(0.45, "converged")) and not _confidence(0.45, "converged").outranks(tighter)
+    assert not tighter.outranks(tighter)

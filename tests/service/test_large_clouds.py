@@ -60,11 +60,12 @@ def fresh_server(tmp_path: Path):
 
 def test_a_269k_point_rgbd_fragment_registers_over_http(fresh_server, scans_dir: Path) -> None:
     """3DMatch redkitchen fragments 1 -> 0 (269k and 258k points, 6 mm lattice, 50° apart): answered, not refused,
-    within 3DMatch's recall thresholds (15°, 30 cm), with every cloud's size reported back."""
+    within 2° and 5 cm (the classical peers of ``pranet-bench scans``: 0.44°, 1.2-1.4 cm; 3DMatch's recall thresholds,
+    15° and 30 cm, let an agent answer slid 20-47 cm along the cabinets pass), with every cloud's size reported back."""
     out, T_gt, source, target = register_listed_pair(fresh_server.url, scans_dir, "3dmatch_redkitchen_1_to_0")
     assert (out["n_source"], out["n_target"]) == (len(source), len(target)) == (268977, 258342)
     rot, trans = isotropic_errors(np.asarray(out["transform"]), T_gt)
-    assert rot < 15.0 and trans < 0.3 and out["status"] == "converged", (rot, trans, out["status"])
+    assert rot < 2.0 and trans < 0.05 and out["status"] == "converged", (rot, trans, out["status"])
     assert 0.004 < out["spacing"] < 0.02  # metres: the fragments' lattice, measured on the capped working copy
 
 
