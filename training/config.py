@@ -12,9 +12,16 @@ from pranet.model.config import CPU_NET, PAPER_NET, NetConfig
 
 @dataclass(frozen=True)
 class SamplingConfig:
-    """Training states. ``full``/``near`` components are ``(max_angle_deg, max_translation, weight)``."""
+    """Training states. ``full`` components are ``(max_angle_deg, max_translation, weight)``.
+
+    ``near_settings``, when given, replaces ``settings`` for the states drawn from a component of at most
+    ``near_max_deg``: a setting can be weighted where the agent finishes without starving the far-off states
+    of the others (docs/DESIGN.md, "Partial weight near the truth only").
+    """
 
     settings: tuple[tuple[str, float], ...] = (("clean", 1.0),)
+    near_settings: tuple[tuple[str, float], ...] = ()
+    near_max_deg: float = 10.0
     rotation: str = "isotropic"  # "isotropic" | "naive" (then angles are per Euler axis)
     full: tuple[tuple[float, float, float], ...] = ((60.0, 0.5, 1.0),)
     curriculum: str = "paper"  # "paper" | "uniform" | "adhoc"
@@ -72,6 +79,7 @@ class TrainConfig:
             **{
                 **s,
                 "settings": tuple(tuple(x) for x in s["settings"]),
+                "near_settings": tuple(tuple(x) for x in s.get("near_settings", ())),
                 "full": tuple(tuple(x) for x in s["full"]),
                 "small": tuple(s["small"]),
             }

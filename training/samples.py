@@ -94,10 +94,14 @@ class StateDistribution:
     rotation: str = "isotropic"
     orientation_max_deg: float = 0.0
 
-    def draw(self, rng: np.random.Generator) -> tuple[Array, Array]:
-        """One error state ``(R_err (3, 3), t_err (3,))``."""
+    def pick(self, rng: np.random.Generator) -> int:
+        """The index of a component, drawn by weight."""
         w = np.array([c[2] for c in self.components], dtype=np.float64)
-        angle, trans, _ = self.components[int(rng.choice(len(w), p=w / w.sum()))]
+        return int(rng.choice(len(w), p=w / w.sum()))
+
+    def draw(self, rng: np.random.Generator, component: int | None = None) -> tuple[Array, Array]:
+        """One error state ``(R_err (3, 3), t_err (3,))`` from ``component``, or from one drawn by weight."""
+        angle, trans, _ = self.components[self.pick(rng) if component is None else component]
         return (
             sample_rotations(rng, self.rotation, np.deg2rad(angle), 1)[0],
             sample_translations(rng, trans, 1)[0],
@@ -120,6 +124,7 @@ def training_state(
     table: ActionTable,
     rng: np.random.Generator,
     reward: str = "se3",
+    component: int | None = None,
 ) -> TrainingState:
     """One supervised sample: the source in its current pose, the target, and the rewards.
 
@@ -131,7 +136,7 @@ def training_state(
     src, tgt = observe(shape, setting, rng)
     Q = sample_rotations(rng, "isotropic", np.deg2rad(states.orientation_max_deg), 1)[0]
     src_true, tgt = src @ Q.T, tgt @ Q.T
-    R_err, t_err = states.draw(rng)
+    R_err, t_err = states.draw(rng, component)
     m_true = src_true.mean(axis=0)
     source = (src_true - m_true) @ R_err + (m_true - t_err)  # R_err.T applied to rows: (x - m) @ R_err
     if reward == "se3":

@@ -15,6 +15,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,11 @@ from pranet.training.data import Splits, data_dir, load_modelnet40, split_train_
 from pranet.training.samples import StateDistribution, curriculum_states, training_state
 
 
+def _setting_weights(settings: Sequence[tuple[str, float]]) -> tuple[tuple[str, ...], np.ndarray]:
+    names, weights = zip(*settings, strict=True)
+    return names, np.array(weights, dtype=np.float64) / sum(weights)
+
+
 class StateDataset(Dataset):
     """Sample ``i`` of an epoch: a fresh random state of shape ``shapes[order[i]]``, seeded by (seed, epoch, i)."""
 
@@ -49,17 +55,29 @@ class StateDataset(Dataset):
         self.table = table
         self.states = states
         self.seed_key = seed_key
-        names, weights = zip(*cfg.sampling.settings, strict=True)
-        self.setting_names = names
-        self.setting_p = np.array(weights, dtype=np.float64) / sum(weights)
+        self.far = _setting_weights(cfg.sampling.settings)
+        self.near = _setting_weights(cfg.sampling.near_settings) if cfg.sampling.near_settings else None
+        self.near_max_deg = cfg.sampling.near_max_deg
+
+    def setting_and_component(self, rng: np.random.Generator) -> tuple[str, int | None]:
+        """The setting of one state and, with ``near_settings``, its error component (else drawn later)."""
+        component = None
+        names, p = self.far
+        if self.near is not None:  # the component first: it decides which setting weights apply
+            component = self.states.pick(rng)
+            if self.states.components[component][0] <= self.near_max_deg:
+                names, p = self.near
+        return names[int(rng.choice(len(names), p=p))], component
 
     def __len__(self) -> int:
         return len(self.shapes)
 
     def __getitem__(self, i: int) -> tuple[torch.Tensor, ...]:
         rng = np.random.default_rng([*self.seed_key, i])
-        setting = self.setting_names[int(rng.choice(len(self.setting_names), p=self.setting_p))]
-        state = training_state(self.shapes[i], setting, self.states, self.table, rng, self.cfg.sampling.reward)
+        setting, component = self.setting_and_component(rng)
+        state = training_state(
+            self.shapes[i], setting, self.states, self.table, rng, self.cfg.sampling.reward, component
+        )
         src, tgt, rewards = state.source, state.target, state.rewards
         n, k = self.cfg.net.n_points, self.cfg.net.k
         src, tgt = resample(src, n, rng).astype(np.float32), resample(tgt, n, rng).astype(np.float32)

@@ -189,6 +189,32 @@ def test_the_state_labels_move_the_resampled_source_onto_its_truth(data_root):
         assert (d < 1e-5).mean() > 0.1, (d < 1e-5).mean()
 
 
+def test_near_settings_apply_to_the_near_components_only():
+    """With ``near_settings`` a state's component is drawn first: near ones (at most ``near_max_deg``) take their
+    setting from ``near_settings``, far ones from ``settings``, and the state is drawn from that component."""
+    from scipy.spatial.transform import Rotation
+
+    from pranet.core.actions import build_action_table
+    from pranet.training.config import PRESETS
+    from pranet.training.samples import StateDistribution
+    from pranet.training.train import StateDataset
+
+    cfg = PRESETS["agent"]
+    sampling = {**cfg.to_dict()["sampling"], "settings": [["clean", 1.0]], "near_settings": [["partial", 1.0]]}
+    cfg = cfg.__class__.from_dict({**cfg.to_dict(), "sampling": {**sampling, "near_max_deg": 10.0}})
+    shapes = np.random.default_rng(0).normal(size=(24, 1024, 3))
+    states = StateDistribution(((60.0, 0.5, 1.0), (10.0, 0.1, 1.0)))
+    ds = StateDataset(shapes, cfg, build_action_table(cfg.scales), states, (5,))
+    drawn = [ds.setting_and_component(np.random.default_rng([5, i])) for i in range(len(shapes))]
+    assert {c for _, c in drawn} == {0, 1}
+    assert all((s == "partial") == (c == 1) for s, c in drawn), drawn
+    angles = [np.rad2deg(Rotation.from_matrix(ds[i][5].numpy().astype(np.float64)).magnitude()) for i in range(24)]
+    assert all(a <= 10.0 + 1e-4 for a, (_, c) in zip(angles, drawn, strict=True) if c == 1), angles
+    assert any(a > 10.0 for a, (_, c) in zip(angles, drawn, strict=True) if c == 0), angles
+    plain = StateDataset(shapes, PRESETS["agent"], build_action_table(cfg.scales), states, (5,))
+    assert plain.setting_and_component(np.random.default_rng(1))[1] is None
+
+
 def test_overlap_labels_mark_the_shared_part_at_the_true_pose():
     """Target = the half x > 0 of a plane sampled at random, the source the whole plane moved off by a known pose:
     at the true pose the source's x > 0 part overlaps, its x < 0 part does not, and every target point does."""
