@@ -15,6 +15,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from probe_pairs import paired  # the same paired mean and standard error as the validation probes
 
 
 def records(path: Path) -> dict[str, dict[str, dict]]:
@@ -30,12 +31,13 @@ def compare(method: str, new: dict[str, dict], base: dict[str, dict]) -> str:
     x = np.array([new[k]["rotation_deg"] for k in keys])
     y = np.array([base[k]["rotation_deg"] for k in keys])
     d = x - y
+    mean, se = paired(x, y)
     sx = np.array([new[k]["success"] for k in keys], bool)
     sy = np.array([base[k]["success"] for k in keys], bool)
     worse, better = int((d > 5).sum()), int((d < -5).sum())
     return (
         f"{method:16s} {len(keys)} pairs: rotation mean {x.mean():.3f}° (base {y.mean():.3f}°), difference "
-        f"{d.mean():+.3f} ± {d.std(ddof=1) / np.sqrt(len(d)):.3f}°; median {np.median(x):.3f}° ({np.median(y):.3f}°); "
+        f"{mean:+.3f} ± {se:.3f}°; median {np.median(x):.3f}° ({np.median(y):.3f}°); "
         f"pairs 5° worse / better: {worse} / {better}; success {sx.mean():.1%} ({sy.mean():.1%}), "
         f"made right {(sx & ~sy).sum()}, lost {(~sx & sy).sum()}"
     )

@@ -16,7 +16,7 @@ class SamplingConfig:
 
     ``near_settings``, when given, replaces ``settings`` for the states drawn from a component of at most
     ``near_max_deg``: a setting can be weighted where the agent finishes without starving the far-off states
-    of the others (docs/DESIGN.md, "Partial weight near the truth only").
+    of the others (docs/DESIGN.md, "A 1:1:1 finish, and the partial weight near the truth only").
     """
 
     settings: tuple[tuple[str, float], ...] = (("clean", 1.0),)
