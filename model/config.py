@@ -60,6 +60,10 @@ class NetConfig:
     # kNN graph) added to the first EdgeConv: they do not change with the pose or with the crop's centroid, where the
     # xyz features do (docs/DESIGN.md, "Point-pair features").
     point_pair_features: bool = False
+    # The first EdgeConv sees only each point's offsets to its neighbours, not its position about the centroid, so
+    # one surface point gets the same first features in two crops whose centroids differ (docs/DESIGN.md, "Local
+    # first-layer features").
+    local_edges: bool = False
 
     def __post_init__(self) -> None:
         if self.matching not in ("softmax", "sinkhorn"):

@@ -34,22 +34,33 @@ def feature_knn(x: Tensor, k: int) -> Tensor:
 
 class EdgeConv(nn.Module):
     """``x_i' = ReLU(W x_i + b + max_j (V x_j + e_ij))`` over the neighbours ``j`` of ``i``; ``e_ij``: an optional
-    per-edge term ``(B, N, k, C_out)`` (the point-pair features' embedding), 0 without."""
+    per-edge term ``(B, N, k, C_out)`` (the point-pair features' embedding), 0 without.
 
-    def __init__(self, c_in: int, c_out: int) -> None:
+    ``local``: ``W = -V``, i.e. ``ReLU(b + max_j V (x_j - x_i))``: only the offsets to the neighbours enter, so the
+    output does not change when the cloud is translated (nor, on a layer that sees xyz, with the centroid a crop
+    moves)."""
+
+    def __init__(self, c_in: int, c_out: int, local: bool = False) -> None:
         super().__init__()
-        self.w = nn.Linear(c_in, c_out)
+        self.local = local
+        self.w = None if local else nn.Linear(c_in, c_out)
+        self.bias = nn.Parameter(torch.zeros(c_out)) if local else None
         self.v = nn.Linear(c_in, c_out, bias=False)
 
+    def _centre_term(self, vx: Tensor, x: Tensor) -> Tensor:
+        return self.bias - vx if self.w is None else self.w(x)
+
     def forward(self, x: Tensor, idx: Tensor, edges: Tensor | None = None) -> Tensor:  # (B, N, C_in), (B, N, k)
-        neighbors = gather_neighbors(self.v(x), idx)  # (B, N, k, C_out)
+        vx = self.v(x)
+        neighbors = gather_neighbors(vx, idx)  # (B, N, k, C_out)
         if edges is not None:
             neighbors = neighbors + edges
-        return torch.relu(self.w(x) + neighbors.amax(dim=2))
+        return torch.relu(self._centre_term(vx, x) + neighbors.amax(dim=2))
 
     def naive(self, x: Tensor, idx: Tensor) -> Tensor:
         """Textbook form: ReLU over the full edge tensor, then max over neighbours."""
-        edges = self.w(x).unsqueeze(2) + gather_neighbors(self.v(x), idx)  # (B, N, k, C_out)
+        vx = self.v(x)
+        edges = self._centre_term(vx, x).unsqueeze(2) + gather_neighbors(vx, idx)  # (B, N, k, C_out)
         return torch.relu(edges).amax(dim=2)
 
 
@@ -132,7 +143,10 @@ class DGCNN(nn.Module):
     def __init__(self, cfg: NetConfig) -> None:
         super().__init__()
         widths = (3, *cfg.edge_widths)
-        self.convs = nn.ModuleList(EdgeConv(a, b) for a, b in zip(widths[:-1], widths[1:], strict=True))
+        self.convs = nn.ModuleList(
+            EdgeConv(a, b, local=cfg.local_edges and i == 0)
+            for i, (a, b) in enumerate(zip(widths[:-1], widths[1:], strict=True))
+        )
         self.point_pairs = PointPairEdges(cfg.edge_widths[0]) if cfg.point_pair_features else None
         self.dynamic = cfg.graph == "dynamic"
         self.k = cfg.k

@@ -37,6 +37,36 @@ def test_decomposed_edge_conv_equals_the_textbook_form():
     torch.testing.assert_close(conv.naive(x, idx), ref, atol=1e-5, rtol=1e-5)
 
 
+def test_a_local_edge_conv_is_the_textbook_form_on_offsets_only():
+    """``local``: DGCNN's Conv2d over ``[x_j - x_i]`` alone (the ``x_i`` half of the weight is zero)."""
+    torch.manual_seed(0)
+    B, N, C, Cout, k = 2, 48, 3, 16, 8
+    x = torch.randn(B, N, C)
+    idx = torch.from_numpy(knn_indices(x.numpy(), k))
+    conv = EdgeConv(C, Cout, local=True)
+    with torch.no_grad():
+        conv.bias.normal_(std=0.1)
+    weight = torch.cat([conv.v.weight, torch.zeros(Cout, C)], dim=1)
+    ref = textbook_edge_conv(x, idx, weight.detach(), conv.bias.detach())
+    torch.testing.assert_close(conv(x, idx), ref, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(conv.naive(x, idx), ref, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("local", [True, False])
+def test_local_edges_make_the_embedding_blind_to_where_the_cloud_sits(local):
+    """What ``local_edges`` is for: one surface point, two crops with different centroids, the same features. A
+    translated cloud (the kNN graph unchanged) embeds identically with it, and differently without."""
+    torch.manual_seed(2)
+    table = build_action_table()
+    net = RewardNet(NetConfig(n_points=64, center_inputs=False, local_edges=local), table).eval()
+    pts = torch.randn(1, 64, 3)
+    knn = torch.from_numpy(knn_indices(pts.numpy(), 16))
+    with torch.no_grad():
+        a, _ = net.embed(pts, knn)
+        b, _ = net.embed(pts + torch.tensor([0.15, -0.1, 0.05]), knn)
+    assert torch.allclose(a, b, atol=1e-5) == local
+
+
 @pytest.mark.parametrize(
     "cfg", [NetConfig(n_points=64), NetConfig(n_points=64, pool="maxmean", blocks=2, self_attention=True)]
 )
