@@ -42,7 +42,6 @@ class EdgeConv(nn.Module):
 
     def __init__(self, c_in: int, c_out: int, local: bool = False) -> None:
         super().__init__()
-        self.local = local
         self.w = None if local else nn.Linear(c_in, c_out)
         self.bias = nn.Parameter(torch.zeros(c_out)) if local else None
         self.v = nn.Linear(c_in, c_out, bias=False)
