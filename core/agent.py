@@ -12,7 +12,8 @@ with ``m`` the source centroid; rotations act on ``R`` (about the current centro
 translations on ``c``. The returned transforms are ``T_target_source`` in the frame of the inputs.
 
 ``run_agent_batch`` runs the same loop from several start poses at once (the global mode), with one
-``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` call per step.
+``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` call per step. A ``fine_score_fn`` of the same form scores
+the steps of every scale after the first instead (the model's fine-phase call, ``RegistrationConfig.fine_matching``).
 
 The walk (``walk_steps > 0``, beyond the paper): a network with the analytic reward layer computes its 24 rewards
 in closed form from one estimated residual pose, so as long as that estimate stands the greedy steps toward it
@@ -99,6 +100,7 @@ def run_agent(
     pose_fn: BatchPoseFn | None = None,
     walk_steps: int = 0,
     confirm_arrival: bool = True,
+    fine_score_fn: ScoreFn | None = None,
 ) -> AgentResult:
     """Register ``source: (N, 3)`` onto ``target: (M, 3)``; returns ``T_target_source`` and the trajectory.
 
@@ -106,6 +108,7 @@ def run_agent(
     as no action of it has a positive predicted reward. ``deadline`` (``time.monotonic()`` seconds):
     raise ``AgentTimeout`` once it has passed, checked before every step. ``pose_fn``, ``walk_steps`` and
     ``confirm_arrival``: the walk (module docstring); without ``pose_fn`` every step calls ``score_fn``.
+    ``fine_score_fn``: scores the steps of every scale after the first (the fine phase) instead of ``score_fn``.
     """
     T0 = np.eye(4) if initial_transform is None else np.asarray(initial_transform, dtype=np.float64)
     # The batched loop with one start; the single score_fn is called once per step as before.
@@ -123,6 +126,7 @@ def run_agent(
         pose_fn=pose_fn,
         walk_steps=walk_steps,
         confirm_arrival=confirm_arrival,
+        fine_score_fn=None if fine_score_fn is None else batch_from_single(fine_score_fn),
     )[0]
 
 
@@ -140,6 +144,7 @@ def run_agent_batch(
     pose_fn: BatchPoseFn | None = None,
     walk_steps: int = 0,
     confirm_arrival: bool = True,
+    fine_score_fn: BatchScoreFn | None = None,
 ) -> list[AgentResult]:
     """``run_agent`` from each of ``initial_transforms: (B, 4, 4)`` at once: one ``batch_score_fn`` call per step.
 
@@ -148,6 +153,7 @@ def run_agent_batch(
     leaves the batch until the next scale (the batch shrinks). Stochastic policies draw from the one
     ``rng`` in start order at each step, so their draws differ from ``B`` separate runs. With ``pose_fn`` and
     ``walk_steps > 0`` the rows are scored by the walk (module docstring): ``batch_score_fn`` is not called.
+    ``fine_score_fn`` (network calls only, not with the walk) scores the steps of every scale after the first.
     """
     if len(schedule) != len(table.scales):
         raise ValueError(f"schedule has {len(schedule)} phases but the action table has {len(table.scales)} scales")
@@ -161,8 +167,11 @@ def run_agent_batch(
     results = [AgentResult(transform=T.copy()) for T in T0]
     steps = [0] * len(T0)
     walk = PoseWalk(pose_fn, table, walk_steps, confirm_arrival) if pose_fn is not None and walk_steps > 0 else None
+    if walk is not None and fine_score_fn is not None:
+        raise ValueError("fine_score_fn scores network steps; the walk asks pose_fn instead")
     for scale, n_steps in enumerate(schedule):
         idx = table.indices_of_scale(scale)
+        scorer = fine_score_fn if fine_score_fn is not None and scale > 0 else batch_score_fn
         active = list(range(len(T0)))
         for _ in range(n_steps):
             if not active:
@@ -173,7 +182,7 @@ def run_agent_batch(
             if walk is not None:
                 rewards_all = walk.rewards(active, R, c, current, target, idx)
             else:
-                rewards_all = np.asarray(batch_score_fn(current, target), dtype=np.float64)[:, idx]  # (B_active, A_s)
+                rewards_all = np.asarray(scorer(current, target), dtype=np.float64)[:, idx]  # (B_active, A_s)
             still = []
             for b, rewards in zip(active, rewards_all, strict=True):
                 # The walk's rewards are never all <= 0 on a stale estimate (it asks again first): a fresh one ends

@@ -157,7 +157,9 @@ class RegistrationConfig:
     next global candidate has been seen, until one is ``sure``. ``icp_kernel``: on sparse clouds, the
     point-to-plane stages weigh each match by Tukey's biweight with this scale in spacings (``None``: least squares,
     the paper's v2). ``agent_points``: points per cloud the agent sees, each point once (all of a
-    smaller cloud; ``None``: the model's own ``n_points``).
+    smaller cloud; ``None``: the model's own ``n_points``). ``fine_matching``: the fine phase's network calls match
+    the clouds where the agent has put them, on the position-led rounds only (the model's ``score_fine.onnx``;
+    a network call per step, so not with the walk).
     """
 
     icp_stages: tuple[IcpStage, ...] = ()
@@ -184,6 +186,7 @@ class RegistrationConfig:
     agent_points: int | None = None
     rescue_global_starts: float | None = None
     rescue_turns: float | None = None
+    fine_matching: bool = False
 
     def __post_init__(self) -> None:
         check_icp_stages(self.icp_stages)
@@ -213,6 +216,8 @@ class RegistrationConfig:
             raise ValueError(f"icp_kernel must be > 0 or None, got {self.icp_kernel}")
         if self.walk_steps < 0:
             raise ValueError(f"walk_steps must be >= 0, got {self.walk_steps}")
+        if self.fine_matching and self.walk_steps:
+            raise ValueError("fine_matching scores every fine step by the network: it needs walk_steps=0")
 
     @property
     def refines(self) -> bool:

@@ -142,13 +142,20 @@ class RegistrationContext:
     @property
     def network_calls(self) -> int:
         """Full network evaluations so far, from the score functions that count them (``RewardModel``'s do)."""
-        return sum(int(getattr(fn, "calls", {}).get("full", 0)) for fn in self.scorers)
+        calls = [getattr(fn, "calls", {}) for fn in self.scorers]
+        return sum(int(c.get("full", 0)) + int(c.get("fine", 0)) for c in calls)
 
     def loop(self, score_fn: object) -> dict:
         """The agent loop's keyword arguments when it scores with ``score_fn`` (its ``pose``, when the model has
-        one, is what the walk asks)."""
+        one, is what the walk asks; its ``fine``, the fine phase's scorer with ``fine_matching``)."""
         c = self.config
         pose_fn = getattr(score_fn, "pose", None)
+        fine_score_fn = getattr(score_fn, "fine", None) if c.fine_matching else None
+        if c.fine_matching and fine_score_fn is None:
+            raise ValueError(
+                "fine_matching: this model has no fine-phase call (score_fine.onnx); "
+                "re-export its checkpoint with pranet-export"
+            )
         return {
             "policy": c.policy,
             "rng": self.rng,
@@ -157,6 +164,7 @@ class RegistrationContext:
             "pose_fn": pose_fn,
             "walk_steps": c.walk_steps,
             "confirm_arrival": c.confirm_arrival or not c.refines,
+            "fine_score_fn": fine_score_fn,
         }
 
     @property

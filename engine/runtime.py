@@ -43,6 +43,10 @@ HEAD_GRAPH = "head.onnx"  # optional: the MLP heads alone, for translation steps
 PRECISIONS = ("fp32", "int8")
 INT8_GRAPHS = ("embed.int8.onnx", "score.int8.onnx")
 HEAD_INT8_GRAPH = "head.int8.onnx"
+# Optional: the fine phase's network call (``model.config.FINE_ROUNDS``), matching in the clouds' actual placement;
+# the card's ``fine_matching`` names its rounds.
+FINE_GRAPH = "score_fine.onnx"
+FINE_INT8_GRAPH = "score_fine.int8.onnx"
 OPTIMIZATION_LEVELS = ("none", "basic", "extended", "all")
 EXECUTION_MODES = ("sequential", "parallel")
 # Centred source points within this (unit frame) of the previous call's: the same orientation, so the
@@ -63,9 +67,21 @@ def head_file(precision: str = "fp32") -> str:
     return HEAD_GRAPH if precision == "fp32" else HEAD_INT8_GRAPH
 
 
+def fine_file(precision: str = "fp32") -> str:
+    """The fine-phase score graph's file name of ``precision``."""
+    graph_files(precision)  # validates precision
+    return FINE_GRAPH if precision == "fp32" else FINE_INT8_GRAPH
+
+
 def card_graphs(card: dict[str, Any], precision: str = "fp32") -> tuple[str, ...]:
-    """The graph files of ``precision`` that ``card`` describes: embed, score and (when listed) the head."""
-    return graph_files(precision) + ((head_file(precision),) if HEAD_GRAPH in card.get("files", {}) else ())
+    """The graph files of ``precision`` that ``card`` describes: embed, score and (when listed) the head and the
+    fine-phase score graph."""
+    files = card.get("files", {})
+    return (
+        graph_files(precision)
+        + ((head_file(precision),) if HEAD_GRAPH in files else ())
+        + ((fine_file(precision),) if FINE_GRAPH in files else ())
+    )
 
 
 class ModelLoadError(RuntimeError):
@@ -138,6 +154,7 @@ class RewardModel:
     _score: Any
     _score_inputs: tuple[str, ...] = ()
     _head: Any = None  # head.onnx session, or None: every step runs score.onnx
+    _fine: Any = None  # score_fine.onnx session, or None: the model has no fine-phase call
 
     precision: str = "fp32"
     reuse_translations: bool = True  # re-score translated sources with the head alone (when _head exists)
@@ -165,18 +182,23 @@ class RewardModel:
         card = read_card(model_dir, verify=verify, precision=precision)
         # The head re-scores translated sources only when the embedding ignores where a cloud is.
         has_head = HEAD_GRAPH in card.get("files", {}) and bool(card.get("net", {}).get("center_inputs"))
-        graphs = card_graphs(card, precision) if has_head else graph_files(precision)
+        listed = card_graphs(card, precision)
+        graphs = [g for g in listed if has_head or g != head_file(precision)]
         opts = session_options(threads, optimization, execution, arena, mem_pattern, spinning)
         try:
             import onnxruntime as ort
 
-            sessions = [
-                ort.InferenceSession(str(model_dir / g), sess_options=opts, providers=["CPUExecutionProvider"])
+            sessions = {
+                g: ort.InferenceSession(str(model_dir / g), sess_options=opts, providers=["CPUExecutionProvider"])
                 for g in graphs
-            ]
+            }
         except Exception as e:  # onnxruntime raises its own exception types for bad files
             raise ModelLoadError(f"onnxruntime cannot load {model_dir}: {e}") from e
-        digest = hashlib.sha256("".join(card["files"][g] for g in graphs).encode()).hexdigest()
+        # The model's identity: the graphs every registration runs (a fine-phase graph added to a model directory
+        # leaves it as it was).
+        core = [g for g in graphs if g != fine_file(precision)]
+        digest = hashlib.sha256("".join(card["files"][g] for g in core).encode()).hexdigest()
+        embed, score = graph_files(precision)
         return cls(
             card=card,
             table=build_action_table(card["actions"]["scales"]),
@@ -184,10 +206,11 @@ class RewardModel:
             n_points=int(card["n_points"]),
             k=int(card["k"]),
             sha256=digest,
-            _embed=sessions[0],
-            _score=sessions[1],
-            _score_inputs=tuple(i.name for i in sessions[1].get_inputs()),
-            _head=sessions[2] if has_head else None,
+            _embed=sessions[embed],
+            _score=sessions[score],
+            _score_inputs=tuple(i.name for i in sessions[score].get_inputs()),
+            _head=sessions.get(head_file(precision)),
+            _fine=sessions.get(fine_file(precision)),
             precision=precision,
             reuse_translations=reuse_translations,
         )
@@ -224,11 +247,16 @@ class RewardModel:
         function below with one row (the same caching and head-only re-scoring). Counts in ``score.calls``."""
         batched = self.batch_score_fn(target)
 
-        def score(source: np.ndarray, _target: np.ndarray) -> np.ndarray:
-            return batched(np.asarray(source)[None], _target)[0]
+        def single(fn: BatchScoreFn) -> ScoreFn:
+            def score(source: np.ndarray, _target: np.ndarray) -> np.ndarray:
+                return fn(np.asarray(source)[None], _target)[0]
 
+            return score
+
+        score = single(batched)
         score.calls = batched.calls  # type: ignore[attr-defined]
         score.pose = batched.pose  # type: ignore[attr-defined]
+        score.fine = None if batched.fine is None else single(batched.fine)  # type: ignore[attr-defined]
         return score
 
     def batch_score_fn(self, target: npt.ArrayLike) -> BatchScoreFn:
@@ -238,23 +266,27 @@ class RewardModel:
         poses (the global mode's starts), so the kNN graph of the first row serves every row. A row whose
         centred points match a row of the previous call (only translated since) is re-scored by the head
         graph; the others go through ``score.onnx`` together. Counts in ``score.calls`` (rows).
+        ``score.fine`` (``None`` without ``score_fine.onnx``) is the fine phase's scorer on the same target
+        embedding: every row through ``score_fine.onnx`` (its pair features change with a translation), counted in
+        ``calls["fine"]``.
         """
         t_pts = np.asarray(target, dtype=np.float32)[None]  # (1, M, 3)
         t_feat, t_cen, _ = self.embed(t_pts)
         tiled: dict[int, tuple[np.ndarray, ...]] = {}  # B -> (knn, target points, features, centroid) tiled
         head = self._head if self.reuse_translations else None
         cache: dict[str, np.ndarray] = {}  # "centred": (B', N, 3) and "pair": (B', P) of the previous call
-        calls = {"full": 0, "head": 0}
+        calls = {"full": 0, "head": 0, "fine": 0}
 
-        def run(pts: np.ndarray, names: list[str]) -> list[np.ndarray]:
+        def run(pts: np.ndarray, names: list[str], fine: bool = False) -> list[np.ndarray]:
             b = len(pts)
             if b not in tiled:
                 knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.k)  # (1, N, k)
                 tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, t_pts, t_feat, t_cen))
             knn, tp, tf, tc = tiled[b]
             feeds = {"points": pts, "knn": knn, "target_points": tp, "target_features": tf, "target_centroid": tc}
-            calls["full"] += b
-            return self._score.run(names, {name: feeds[name] for name in self._score_inputs})
+            calls["fine" if fine else "full"] += b
+            session = self._fine if fine else self._score
+            return session.run(names, {name: feeds[name] for name in self._score_inputs})
 
         def full(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             out = run(pts, ["rewards", "pair_features"] if head is not None else ["rewards"])
@@ -298,8 +330,12 @@ class RewardModel:
             cache["centred"], cache["pair"] = centred, pair
             return rewards
 
+        def fine_score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
+            return run(np.ascontiguousarray(sources, dtype=np.float32), ["rewards"], fine=True)[0]
+
         score.calls = calls  # type: ignore[attr-defined]
         score.pose = pose if self.analytic else None  # type: ignore[attr-defined]
+        score.fine = fine_score if self._fine is not None else None  # type: ignore[attr-defined]
         return score
 
     @property

@@ -4,6 +4,35 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+# One round of matching at inference: (the trained round whose predicted (β, γ, α) it uses, a factor on its γ).
+MatchingRound = tuple[int, float]
+
+# The fine phase's matching (``score_fine.onnx``): the position-led trained rounds 1 and 2, then round 2 with its
+# distance kernel 2× and 4× narrower (γ × 4, × 16), in the clouds' actual placement rather than each about its own
+# centroid. Near alignment the feature-led round 0 pulls a partial pair ~10° off and own-centroid coordinates start the
+# matching 0.1-0.2 from where the agent has put the source; the paper's agent with this fine phase: partial -3.2 ±
+# 0.8°, noisy -0.8° on 100 validation pairs (docs/DESIGN.md, "A fine-phase call").
+FINE_ROUNDS: tuple[MatchingRound, ...] = ((1, 1.0), (2, 1.0), (2, 4.0), (2, 16.0))
+
+
+def parse_rounds(spec: str) -> tuple[MatchingRound, ...]:
+    """``"1+2+2g4"`` -> ``((1, 1.0), (2, 1.0), (2, 4.0))``: a trained round's index, ``gN`` for γ × N."""
+    rounds = []
+    for item in spec.split("+"):
+        index, _, scale = item.partition("g")
+        try:
+            rounds.append((int(index), float(scale) if scale else 1.0))
+        except ValueError:
+            raise ValueError(f"bad matching round {item!r} in {spec!r}: an index, optionally gN (γ × N)") from None
+    if any(i < 0 or g <= 0 for i, g in rounds):
+        raise ValueError(f"bad matching rounds {spec!r}: indices >= 0, γ factors > 0")
+    return tuple(rounds)
+
+
+def format_rounds(rounds: tuple[MatchingRound, ...]) -> str:
+    """The inverse of ``parse_rounds``."""
+    return "+".join(f"{i}" if g == 1.0 else f"{i}g{g:g}" for i, g in rounds)
+
 
 @dataclass(frozen=True)
 class NetConfig:

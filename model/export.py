@@ -10,6 +10,10 @@ per registration:
   centred inputs (the ``cpu`` preset) a translation action leaves ``pair_features`` unchanged, so the
   runtime re-scores a translated source with this graph instead of ``score.onnx``.
 
+- ``score_fine.onnx`` (Sinkhorn networks with the rounds it names): ``score.onnx``'s inputs and outputs, the
+  fine phase's call, whose matching runs ``FINE_ROUNDS`` with both clouds about the target's centroid
+  (``RewardNet.pair_features``); the card's ``fine_matching`` says so. Its pair features change with a translation.
+
 and ``card.json``: preset, N, k, the action table (scales, names, fingerprint), the schedule, the
 network config, the training summary and the sha256 of both graphs (checked at load). The same
 metadata is stored in each graph's ``metadata_props``.
@@ -29,8 +33,8 @@ from typing import Any
 import torch
 
 from pranet.core.actions import build_action_table
-from pranet.engine.runtime import graph_files, head_file, sha256_file
-from pranet.model.config import NetConfig
+from pranet.engine.runtime import FINE_GRAPH, graph_files, head_file, sha256_file
+from pranet.model.config import FINE_ROUNDS, NetConfig, format_rounds
 from pranet.model.network import EmbedGraph, HeadGraph, RewardNet, ScoreGraph
 
 OPSET = 17
@@ -63,10 +67,11 @@ def _set_metadata(path: Path, meta: dict[str, str]) -> None:
 
 
 def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, Any]:
-    """Write ``embed.onnx``, ``score.onnx``, ``head.onnx`` and ``card.json`` into ``out``; returns the card."""
+    """Write ``embed.onnx``, ``score.onnx``, ``head.onnx``, ``score_fine.onnx`` (when ``has_fine_call``) and
+    ``card.json`` into ``out``; returns the card."""
     out.mkdir(parents=True, exist_ok=True)
-    for stale in out.glob("*.int8.onnx"):  # made from the previous graphs, if any
-        stale.unlink()
+    for stale in [*out.glob("*.int8.onnx"), out / FINE_GRAPH]:  # made from the previous graphs, if any
+        stale.unlink(missing_ok=True)
     cfg = net.cfg
     N, k = cfg.n_points, cfg.k
     # The graphs are traced in eval mode (inference rounds of matching, no dropout). The wrappers are made in eval
@@ -78,6 +83,14 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         feats, cen = net.embed(pts, knn)
         pair = net.pair_features(feats, cen, feats, cen, pts, pts)
     axes = {"points": {0: "batch", 1: "n"}, "knn": {0: "batch", 1: "n"}}
+    score_axes = {
+        **axes,
+        "target_points": {0: "batch", 1: "m"},
+        "target_features": {0: "batch", 1: "m"},
+        "target_centroid": {0: "batch"},
+        "rewards": {0: "batch"},
+        "pair_features": {0: "batch"},
+    }
     torch.onnx.export(
         EmbedGraph(net).eval(),
         (pts, knn),
@@ -94,17 +107,22 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         str(out / "score.onnx"),
         input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
         output_names=["rewards", "pair_features"],
-        dynamic_axes={
-            **axes,
-            "target_points": {0: "batch", 1: "m"},
-            "target_features": {0: "batch", 1: "m"},
-            "target_centroid": {0: "batch"},
-            "rewards": {0: "batch"},
-            "pair_features": {0: "batch"},
-        },
+        dynamic_axes=score_axes,
         opset_version=OPSET,
         dynamo=False,
     )
+    fine = has_fine_call(cfg)
+    if fine:
+        torch.onnx.export(
+            ScoreGraph(net, FINE_ROUNDS).eval(),
+            (pts, knn, pts, feats, cen),
+            str(out / FINE_GRAPH),
+            input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
+            output_names=["rewards", "pair_features"],
+            dynamic_axes=score_axes,
+            opset_version=OPSET,
+            dynamo=False,
+        )
     torch.onnx.export(
         HeadGraph(net).eval(),
         (pair, cen - cen),
@@ -118,9 +136,26 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
     meta = {k: json.dumps(v) for k, v in card.items() if k != "files"}
     for name in FP32_GRAPHS:
         _set_metadata(out / name, meta)
-    card = {**card, "files": {name: sha256_file(out / name) for name in FP32_GRAPHS}}
+    graphs = FP32_GRAPHS
+    if fine:
+        # Added after the other graphs are stamped, so that a model exported before the fine call keeps their bytes.
+        card = {**card, "fine_matching": {"graph": FINE_GRAPH, "rounds": format_rounds(FINE_ROUNDS)}}
+        _set_metadata(out / FINE_GRAPH, {k: json.dumps(v) for k, v in card.items() if k != "files"})
+        graphs = (*FP32_GRAPHS, FINE_GRAPH)
+    card = {**card, "files": {name: sha256_file(out / name) for name in graphs}}
     (out / "card.json").write_text(json.dumps(card, indent=2) + "\n")
     return card
+
+
+def has_fine_call(cfg: NetConfig) -> bool:
+    """Whether the network can make the fine phase's call: Sinkhorn matching with every round ``FINE_ROUNDS`` names,
+    and the analytic reward layer (whose rewards follow from the pose alone, wherever the matching ran)."""
+    return (
+        cfg.correspondence
+        and cfg.matching == "sinkhorn"
+        and cfg.reward_head == "analytic"
+        and max(i for i, _ in FINE_ROUNDS) < cfg.match_passes
+    )
 
 
 def card_from_checkpoint(ck: dict[str, Any], name: str, version: str) -> dict[str, Any]:

@@ -5,8 +5,12 @@ solver is written out in plain tensor ops (no SVD or eigensolver), so that the g
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor, nn
+
+from pranet.model.config import MatchingRound
 
 
 def polar_rotation(H: Tensor, iterations: int = 20) -> Tensor:
@@ -209,13 +213,26 @@ class SinkhornCorrespondence(nn.Module):
         self.iterations = iterations
         self.inference_passes = inference_passes
 
-    def rounds(self) -> list[int]:
-        """The parameter index of each matching round: the trained rounds, then (eval mode) the last one again."""
+    def rounds(self) -> list[MatchingRound]:
+        """The rounds of a call: the trained ones, then (eval mode) the last one again, each with its own γ."""
         n = self.passes if self.training or self.inference_passes <= 0 else self.inference_passes
-        return [min(i, self.passes - 1) for i in range(n)]
+        return [(min(i, self.passes - 1), 1.0) for i in range(n)]
 
-    def forward(self, fx: Tensor, fy: Tensor, x: Tensor, y: Tensor, pooled: Tensor) -> Tensor:
+    def forward(
+        self,
+        fx: Tensor,
+        fy: Tensor,
+        x: Tensor,
+        y: Tensor,
+        pooled: Tensor,
+        rounds: Sequence[MatchingRound] | None = None,
+    ) -> Tensor:
+        """``rounds`` (default ``self.rounds()``): ``(parameter index, γ scale)`` per round, in order; a scale above 1
+        narrows that round's distance kernel (the fine phase's schedule, ``model.config.FINE_ROUNDS``)."""
         B = x.shape[0]
+        rounds = self.rounds() if rounds is None else rounds
+        if any(not 0 <= i < self.passes for i, _ in rounds):
+            raise ValueError(f"rounds {list(rounds)} name a round this network has not ({self.passes} trained)")
         params = nn.functional.softplus(self.params(pooled)).view(B, self.passes, 3) * self.param_scales
         qx = nn.functional.normalize(self.q(fx), dim=-1)  # (B, N, D)
         ky = nn.functional.normalize(self.k(fy), dim=-1)  # (B, M, D)
@@ -228,11 +245,12 @@ class SinkhornCorrespondence(nn.Module):
         y_sq = (y * y).sum(-1).unsqueeze(1)  # (B, 1, M)
         R = torch.eye(3, dtype=x.dtype, device=x.device).expand(B, 3, 3)
         r = torch.zeros_like(x[:, 0])
-        for i in self.rounds():
+        for i, gamma_scale in rounds:
             beta, gamma, alpha = (params[:, i, j].view(B, 1, 1) for j in range(3))
             moved = x @ R.transpose(1, 2) + r.unsqueeze(1)  # (B, N, 3)
             d2 = (moved * moved).sum(-1, keepdim=True) - 2.0 * moved @ y.transpose(1, 2) + y_sq  # (B, N, M)
-            logits = beta * similarity - gamma * d2 - alpha
+            # A scale of 1 adds no node: the trained call's graph stays as it was exported before the fine schedule.
+            logits = beta * similarity - (gamma * gamma_scale if gamma_scale != 1.0 else gamma) * d2 - alpha
             P = sinkhorn_with_slack(logits if prior is None else logits + prior, self.iterations)
             R_i, r_i = weighted_procrustes(P, moved, y)
             R, r = R_i @ R, (R_i @ r.unsqueeze(-1)).squeeze(-1) + r_i

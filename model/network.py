@@ -7,11 +7,13 @@ shared MLP -> separate rotation and translation heads, which output one reward p
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import Tensor, nn
 
 from pranet.core.actions import ActionTable
-from pranet.model.config import NetConfig
+from pranet.model.config import MatchingRound, NetConfig
 from pranet.model.embedding import DGCNN
 from pranet.model.matching import SinkhornCorrespondence, SoftCorrespondence
 
@@ -163,12 +165,16 @@ class RewardNet(nn.Module):
         tgt_centroid: Tensor,
         src_points: Tensor | None = None,
         tgt_points: Tensor | None = None,
+        fine_rounds: Sequence[MatchingRound] | None = None,
     ) -> Tensor:
         """Embeddings of both clouds -> ``(B, P)``: the MLP input except the centroid offset.
 
         With ``center_inputs`` this does not depend on where the source is, only on its orientation: a
         translation action leaves it unchanged (``head`` alone re-scores), which the runtime exploits.
         ``src_points``/``tgt_points`` (``(B, N, 3)``, ``(B, M, 3)``) are needed with ``correspondence``.
+        ``fine_rounds`` (Sinkhorn matching): the fine phase's call. The matching runs these rounds on both clouds
+        about the target's centroid, where the agent has put them, rather than each about its own; the pose is
+        returned in the same centred convention, and it now depends on where the source is.
         """
         for block in self.blocks:
             # Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X) with shared weights (paper, "Architecture").
@@ -180,13 +186,36 @@ class RewardNet(nn.Module):
             x = src_points - src_centroid.unsqueeze(1)
             y = tgt_points - tgt_centroid.unsqueeze(1)
             if isinstance(self.correspondence, SinkhornCorrespondence):
-                pose = self.correspondence(src, tgt, x, y, torch.cat(parts, dim=-1))
+                pooled = torch.cat(parts, dim=-1)
+                if fine_rounds is None:
+                    pose = self.correspondence(src, tgt, x, y, pooled)
+                else:
+                    pose = self.placed_pose(src, tgt, x, y, pooled, src_centroid - tgt_centroid, fine_rounds)
                 if self.analytic is not None:
                     return pose  # the analytic head needs nothing else
                 parts.append(pose)
             else:
                 parts.append(self.correspondence(src, tgt, x, y))
         return torch.cat(parts, dim=-1)
+
+    def placed_pose(
+        self,
+        src: Tensor,
+        tgt: Tensor,
+        x: Tensor,
+        y: Tensor,
+        pooled: Tensor,
+        offset: Tensor,
+        rounds: Sequence[MatchingRound],
+    ) -> Tensor:
+        """The matching's ``(B, 12)`` pose ``y ≈ R x + r`` (centred clouds ``x``, ``y``; ``offset`` = source − target
+        centroid), found by matching ``x + offset`` against ``y``: both about the target's centroid."""
+        if not isinstance(self.correspondence, SinkhornCorrespondence):
+            raise ValueError("a fine-phase call needs matching='sinkhorn'")
+        pose = self.correspondence(src, tgt, x + offset.unsqueeze(1), y, pooled, rounds)
+        R, r_placed = pose[:, :9].reshape(-1, 3, 3), pose[:, 9:12]
+        # y ≈ R (x + offset) + r_placed = R x + (r_placed + R offset).
+        return torch.cat([pose[:, :9], r_placed + (R @ offset.unsqueeze(-1)).squeeze(-1)], dim=-1)
 
     def residual_pose(self, pair: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
         """Analytic head: ``pair: (B, 12)``, ``offset: (B, 3)`` -> ``(R_err (B, 3, 3), t_err (B, 3))``.
@@ -256,17 +285,22 @@ class ScoreGraph(nn.Module):
 
     ``target_points`` is only an input of networks with ``correspondence``. ``pair_features`` is what
     ``HeadGraph`` needs to re-score the same source after a translation (``center_inputs`` networks).
+    ``fine_rounds``: the fine phase's graph (``score_fine.onnx``; ``RewardNet.pair_features``), whose pair features
+    change with a translation.
     """
 
-    def __init__(self, net: RewardNet) -> None:
+    def __init__(self, net: RewardNet, fine_rounds: Sequence[MatchingRound] | None = None) -> None:
         super().__init__()
         self.net = net
+        self.fine_rounds = None if fine_rounds is None else tuple(fine_rounds)
 
     def forward(
         self, points: Tensor, knn: Tensor, target_points: Tensor, target_features: Tensor, target_centroid: Tensor
     ) -> tuple[Tensor, Tensor]:
         src, centroid = self.net.embed(points, knn)
-        pair = self.net.pair_features(src, centroid, target_features, target_centroid, points, target_points)
+        pair = self.net.pair_features(
+            src, centroid, target_features, target_centroid, points, target_points, self.fine_rounds
+        )
         return self.net.head(pair, centroid - target_centroid), pair
 
 

@@ -1,11 +1,11 @@
 """int8 variants of a model directory: dynamic quantization of its graphs with onnxruntime (no torch).
 
-``quantize_model_dir(dir)`` writes ``embed.int8.onnx``, ``score.int8.onnx`` (and ``head.int8.onnx``
-when the model has ``head.onnx``) beside the fp32 graphs
-and lists them in ``card.json`` (``files``, with their sha256, checked at load like the fp32 ones),
-together with a ``quantization`` entry naming the fp32 graphs they were made from, so that a stale int8
-file (the fp32 graphs re-exported since) is refused. ``RewardModel.load(dir, precision="int8")``
-loads them; the service does with ``PRANET_PRECISION=int8``. ``pranet-export --int8`` calls this.
+``quantize_model_dir(dir)`` writes ``embed.int8.onnx``, ``score.int8.onnx`` (and ``head.int8.onnx``,
+``score_fine.int8.onnx`` when the model has ``head.onnx``, ``score_fine.onnx``) beside the fp32 graphs and lists
+them in ``card.json`` (``files``, with their sha256, checked at load like the fp32 ones), together with a
+``quantization`` entry naming the fp32 graphs they were made from, so that a stale int8 file (the fp32 graphs
+re-exported since) is refused. ``RewardModel.load(dir, precision="int8")`` loads them; the service does with
+``PRANET_PRECISION=int8``. ``pranet-export --int8`` calls this.
 
 Dynamic quantization: the weights of MatMul/Gemm become int8 (per output channel), activations are
 quantized per tensor at run time. MatMuls of two activations (attention scores, attention @ values)
@@ -27,11 +27,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pranet.engine.runtime import graph_files, head_file, sha256_file
+from pranet.engine.runtime import fine_file, graph_files, head_file, sha256_file
 
 FP32_GRAPHS = graph_files("fp32")
 INT8_GRAPHS = graph_files("int8")
 HEAD_GRAPHS = (head_file("fp32"), head_file("int8"))  # (fp32, int8), when the model has a head graph
+FINE_GRAPHS = (fine_file("fp32"), fine_file("int8"))  # (fp32, int8), when the model has a fine-phase graph
 OP_TYPES = ("MatMul", "Gemm")
 # The MLP heads stay fp32: their input concatenates pooled features with the small centroid offset and the
 # correspondence rotation, and one per-tensor activation scale for all of them cost the trained model up to 0.04
@@ -97,11 +98,11 @@ def quantize_model_dir(model_dir: str | Path, per_channel: bool = True, reduce_r
     card_path = model_dir / "card.json"
     card = read_card(model_dir, verify=True)  # quantize only verified fp32 graphs
     pairs = list(zip(FP32_GRAPHS, INT8_GRAPHS, strict=True))
-    if HEAD_GRAPHS[0] in card.get("files", {}):
-        pairs.append(HEAD_GRAPHS)
+    pairs += [optional for optional in (HEAD_GRAPHS, FINE_GRAPHS) if optional[0] in card.get("files", {})]
     for fp32, int8 in pairs:
         quantize_graph(model_dir / fp32, model_dir / int8, per_channel=per_channel, reduce_range=reduce_range)
-    files = {k: v for k, v in card.get("files", {}).items() if k not in INT8_GRAPHS + HEAD_GRAPHS[1:]}
+    int8_names = INT8_GRAPHS + HEAD_GRAPHS[1:] + FINE_GRAPHS[1:]
+    files = {k: v for k, v in card.get("files", {}).items() if k not in int8_names}
     files.update({int8: sha256_file(model_dir / int8) for _, int8 in pairs})
     card["files"] = files
     card["quantization"] = {

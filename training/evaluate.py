@@ -123,16 +123,18 @@ def pranet_runner(
     methods: Sequence[str] = PRANET_METHODS,
     policy: str = "deterministic",
     early_stop: bool = False,
+    fine_matching: bool = False,
 ) -> Runner:
     """PRANet through ``engine`` (``pranet.engine.Engine``): v1 and v2 from one ``PAPER_V2`` registration (its
-    agent-only and refined poses), the adaptive variant as the service's default (``SERVICE_DEFAULT``)."""
+    agent-only and refined poses), the adaptive variant as the service's default (``SERVICE_DEFAULT``).
+    ``fine_matching``: the paper's agent makes the fine phase's call (``RegistrationConfig.fine_matching``)."""
     from pranet.core.confidence import estimate_confidence
     from pranet.core.registration_config import PAPER_V1, PAPER_V2, SERVICE_DEFAULT
 
     options = {"policy": policy, "early_stop": early_stop}
     want_v2 = "pranet-v2" in methods
     want_paper = "pranet-v1" in methods or want_v2
-    paper_config = (PAPER_V2 if want_v2 else PAPER_V1).with_(**options)
+    paper_config = (PAPER_V2 if want_v2 else PAPER_V1).with_(**options, fine_matching=fine_matching)
     adaptive_config = SERVICE_DEFAULT.with_(**options)
 
     def run(pair: Pair, rng: np.random.Generator) -> dict[str, MethodOutput]:
@@ -380,6 +382,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--plot", type=Path, default=None, help="write the Fig. 5 curves (PNG) of pranet-v1's steps")
     p.add_argument("--policy", choices=POLICIES, default="deterministic")
     p.add_argument("--early-stop", action="store_true", help="end a scale once no action has a positive reward")
+    p.add_argument(
+        "--fine-matching",
+        action="store_true",
+        help="pranet-v1/v2: the fine phase's network call (score_fine.onnx: position-led rounds in the clouds' "
+        "actual placement) instead of the trained one",
+    )
     p.add_argument("--max-angle", type=float, default=60.0, help="max rotation (degrees; per axis for naive)")
     p.add_argument("--rotation", choices=("isotropic", "naive"), default="isotropic")
     p.add_argument("--data-dir", default=None, help="data root (default: $PRANET_DATA_DIR, else ../shared/data)")
@@ -439,7 +447,7 @@ def build_methods(args: argparse.Namespace) -> Methods:
         m.model_info["training"] = scorer.card.get("training")
         m.trained_rotation = scorer.card.get("config", {}).get("sampling", {}).get("rotation", "")
         m.switch_step, m.n_steps = int(scorer.schedule[0]), int(sum(scorer.schedule))
-        m.runners.append(pranet_runner(engine, pranet, policy=args.policy, early_stop=args.early_stop))
+        m.runners.append(pranet_runner(engine, pranet, args.policy, args.early_stop, args.fine_matching))
     if any(name in BASELINE_METHODS for name in args.methods):
         from functools import partial
 
@@ -518,7 +526,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     model_str = f"{m.model_info['name']} {m.model_info['version']}" if m.model_info else "-"
     print(
         f"\nsetting={args.setting} pairs={len(idx)} seed={args.seed} rotation={args.rotation} <= {args.max_angle}° "
-        f"policy={args.policy}{' early-stop' if args.early_stop else ''} model={model_str}  (success: rot < "
+        f"policy={args.policy}{' early-stop' if args.early_stop else ''}"
+        f"{' fine-matching' if args.fine_matching else ''} model={model_str}  (success: rot < "
         f"{SUCCESS_ROTATION_DEG}° and trans < {SUCCESS_TRANSLATION}; means over pairs; paper: AAAI 2022 Tables 1-4)"
     )
     print(format_table(summary, paper))

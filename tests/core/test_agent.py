@@ -255,3 +255,35 @@ def test_each_step_is_the_named_action_about_the_current_centroid():
             expected = moved + np.eye(3)[axis] * sign * number
         np.testing.assert_allclose(apply_transform(step.transform, src), expected, atol=1e-9)
         prev = step.transform
+
+
+def test_the_fine_phase_is_scored_by_its_own_function():
+    """``fine_score_fn`` scores every step after the first scale and ``score_fn`` none of them: a fine scorer that
+    points the wrong way pulls the fine phase off, and the oracle's own fine phase ends where the oracle alone does."""
+    rng = np.random.default_rng(7)
+    src, tgt, T = random_problem(rng)
+    oracle = oracle_score_fn(T, src, TABLE)
+    seen: list[str] = []
+
+    def coarse(s, t):
+        seen.append("coarse")
+        return oracle(s, t)
+
+    def fine(s, t):
+        seen.append("fine")
+        return oracle(s, t)
+
+    res = run_agent(src, tgt, coarse, TABLE, (20, 40), fine_score_fn=fine)
+    assert seen == ["coarse"] * 20 + ["fine"] * 40
+    alone = run_agent(src, tgt, oracle, TABLE, (20, 40))
+    np.testing.assert_allclose(res.transform, alone.transform)
+    wrong = run_agent(src, tgt, oracle, TABLE, (20, 40), fine_score_fn=lambda s, t: -oracle(s, t))
+    assert isotropic_errors(wrong.transform, T)[0] > isotropic_errors(alone.transform, T)[0] + 5.0
+
+
+def test_the_fine_phase_scorer_is_not_for_the_walk():
+    rng = np.random.default_rng(8)
+    src, tgt, T = random_problem(rng)
+    oracle = oracle_score_fn(T, src, TABLE)
+    with pytest.raises(ValueError, match="walk"):
+        run_agent(src, tgt, oracle, TABLE, pose_fn=oracle_pose_fn(T, src), walk_steps=5, fine_score_fn=oracle)

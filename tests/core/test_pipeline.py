@@ -470,3 +470,38 @@ def test_the_agent_sees_the_configs_number_of_points_or_the_models():
     for bad in (0, 8, PAPER_AGENT_POINTS + 1, 10**6):
         with pytest.raises(ValueError, match="agent_points"):
             RegistrationConfig(agent_points=bad)
+
+
+def test_fine_matching_scores_the_fine_phase_by_the_models_fine_call():
+    """``fine_matching``: the 40 fine steps go to the score function's ``fine`` (the model's ``score_fine.onnx``),
+    the 20 coarse ones to the trained call, with exit checks cutting the schedule as before; a model without a
+    fine-phase call is refused with a message that says so, and the walk cannot take one."""
+    src, tgt, T = rotated_problem(40.0)
+    oracle = RangeLimitedOracle(src, tgt, T)
+    fine_calls = []
+
+    class WithFineCall:
+        table, schedule, n_points = oracle.table, oracle.schedule, oracle.n_points
+
+        def score_fn(self, target):
+            fn = oracle.score_fn(target)
+
+            def score(source, _target):
+                return fn(source, _target)
+
+            def fine(source, _target):
+                fine_calls.append(1)
+                return oracle.rewards(source)
+
+            score.fine = fine
+            return score
+
+    config = RegistrationConfig(fine_matching=True)
+    reg = register(src, tgt, WithFineCall(), np.random.default_rng(0), config)
+    assert oracle.calls == 60 and len(fine_calls) == 40 and len(reg.trajectory) == 60
+    plain = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), RegistrationConfig())
+    np.testing.assert_allclose(reg.agent_T_target_source, plain.agent_T_target_source, atol=1e-9)
+    with pytest.raises(ValueError, match="no fine-phase call"):
+        register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config)
+    with pytest.raises(ValueError, match="walk"):
+        RegistrationConfig(fine_matching=True, walk_steps=10)

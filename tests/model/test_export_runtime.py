@@ -191,7 +191,7 @@ def test_translated_sources_are_rescored_by_the_head_alone(exported):
         pose = (pose - pose.mean(0)) @ R.T + pose.mean(0) if isinstance(move, str) else pose + np.asarray(move)
         poses.append(pose)
     got = [fn(p, tgt) for p in poses]
-    assert fn.calls == {"full": 2, "head": 4}  # first call and the rotation are full calls
+    assert fn.calls == {"full": 2, "head": 4, "fine": 0}  # first call and the rotation are full calls
     for p, g in zip(poses, got, strict=True):
         np.testing.assert_allclose(g, _torch_rewards(net, p.astype(np.float32), tgt), rtol=1e-4, atol=2e-5)
     # The translation changes the rewards (the head sees the offset): the cached path is not a stale answer.
@@ -199,7 +199,7 @@ def test_translated_sources_are_rescored_by_the_head_alone(exported):
     plain = RewardModel.load(out, threads=1, reuse_translations=False).score_fn(tgt)
     for p, g in zip(poses, got, strict=True):
         np.testing.assert_allclose(plain(p, tgt), g, rtol=1e-4, atol=2e-5)
-    assert plain.calls == {"full": 6, "head": 0}
+    assert plain.calls == {"full": 6, "head": 0, "fine": 0}
 
 
 def test_models_without_a_head_graph_still_load(exported, tmp_path):
@@ -215,7 +215,7 @@ def test_models_without_a_head_graph_still_load(exported, tmp_path):
     tgt = np.random.default_rng(5).standard_normal((128, 3)).astype(np.float32)
     fn = model.score_fn(tgt)
     a, b = fn(tgt, tgt), fn(tgt + 0.1, tgt)
-    assert fn.calls == {"full": 2, "head": 0} and np.abs(a - b).max() > 1e-3
+    assert fn.calls == {"full": 2, "head": 0, "fine": 0} and np.abs(a - b).max() > 1e-3
 
 
 def test_batched_rows_that_only_moved_are_rescored_by_the_head(exported):
@@ -236,7 +236,7 @@ def test_batched_rows_that_only_moved_are_rescored_by_the_head(exported):
     plain = RewardModel.load(out, threads=1, reuse_translations=False).batch_score_fn(tgt)
     for batch in (starts, second, third):
         np.testing.assert_allclose(fast(batch, tgt), plain(batch, tgt), rtol=1e-4, atol=2e-5)
-    assert fast.calls == {"full": 3 + 1, "head": 2 + 2} and plain.calls == {"full": 8, "head": 0}
+    assert fast.calls == {"full": 3 + 1, "head": 2 + 2, "fine": 0} and plain.calls == {"full": 8, "head": 0, "fine": 0}
 
 
 def test_the_walks_pose_gives_the_networks_own_rewards(exported):
@@ -293,3 +293,37 @@ def test_more_matching_rounds_at_export_are_what_the_graph_runs(tmp_path):
     ort = model.score_fn(tgt)(src, tgt)
     np.testing.assert_allclose(ort, ref5, rtol=1e-4, atol=1e-5)
     assert np.abs(ref5 - ref3).max() > 1e-3
+
+
+def test_the_fine_graph_is_the_torch_fine_call(exported):
+    """``score_fine.onnx`` (analytic networks): the runtime's ``score.fine`` computes what torch's fine-phase call
+    computes (``ScoreGraph(net, FINE_ROUNDS)``), which is not the trained call; it counts its own calls, and every
+    row goes through the graph (no head re-scoring: its pair features change with a translation)."""
+    from pranet.model.config import FINE_ROUNDS, format_rounds
+    from pranet.model.network import ScoreGraph
+
+    net, out = exported
+    model = RewardModel.load(out, threads=1)
+    rng = np.random.default_rng(9)
+    tgt = rng.standard_normal((150, 3)).astype(np.float32) * 0.4
+    src = rng.standard_normal((128, 3)).astype(np.float32) * 0.4 + 0.05
+    score = model.batch_score_fn(tgt)
+    if not model.analytic:
+        assert score.fine is None and "score_fine.onnx" not in read_card(out)["files"]
+        return
+    assert read_card(out)["fine_matching"]["rounds"] == format_rounds(FINE_ROUNDS)
+    sources = np.stack([src, src + np.float32(0.03)])  # the second only translated
+    fine = score.fine(sources, tgt)
+    with torch.no_grad():
+        tf, tc = net.embed(torch.from_numpy(tgt[None]), torch.from_numpy(knn_indices(tgt[None], 16)))
+        graph = ScoreGraph(net, FINE_ROUNDS)
+        tp = torch.from_numpy(tgt[None])
+        knn = torch.from_numpy(knn_indices(src[None], 16))  # a translation keeps the graph
+        ref = [graph(torch.from_numpy(s[None]), knn, tp, tf, tc)[0][0] for s in sources]
+    # 1e-4: two rows run other float32 kernels than torch's one, and γ × 16 amplifies their rounding in an untrained
+    # network (4.5e-5 seen on one of 48 rewards).
+    np.testing.assert_allclose(fine, torch.stack(ref).numpy(), rtol=1e-4, atol=1e-4)
+    assert np.abs(fine[0] - _torch_rewards(net, src, tgt)).max() > 1e-3  # not the trained call
+    assert score.calls == {"full": 0, "head": 0, "fine": 2}
+    single = model.score_fn(tgt)
+    np.testing.assert_allclose(single.fine(src, tgt), fine[0], rtol=1e-4, atol=1e-4)

@@ -361,9 +361,96 @@ def test_rounds_beyond_the_trained_ones_run_at_inference_and_bring_an_icp_like_m
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R_hat[0].numpy(), t_hat[0].numpy()
         errors[rounds] = isotropic_errors(T, truth)[0]
-        assert net.correspondence.train().rounds() == [0]  # training runs the trained round only
+        assert net.correspondence.train().rounds() == [(0, 1.0)]  # training runs the trained round only
     assert errors[1] == pytest.approx(errors[0], abs=1e-9)
     assert errors[4] < 0.5 * errors[1] and errors[1] > 1.0, errors
+
+
+def position_only_net(passes: int = 3) -> RewardNet:
+    """An analytic network whose every round matches on positions alone (β ≈ 0, γ ≈ 425, about the trained last
+    round's): ICP-like. Sharper, a point a few hundredths off its counterpart goes to the slack."""
+    cfg = NetConfig(
+        n_points=96,
+        correspondence=True,
+        matching="sinkhorn",
+        reward_head="analytic",
+        sinkhorn_iters=10,
+        match_passes=passes,
+    )
+    torch.manual_seed(0)
+    net = RewardNet(cfg, build_action_table()).eval()
+    with torch.no_grad():
+        last = net.correspondence.params[-1]
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([-30.0, 2.0, 0.0] * passes))
+    return net
+
+
+def residual_of(net: RewardNet, src: np.ndarray, tgt: np.ndarray, rounds=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(R_err, t_err)`` of ``net``'s call on the pair (``rounds``: a fine-phase call on those rounds)."""
+    s, t = torch.from_numpy(src[None]).float(), torch.from_numpy(tgt[None]).float()
+    sk, tk = (torch.from_numpy(knn_indices(a.numpy(), 16)) for a in (s, t))
+    with torch.no_grad():
+        sf, sc = net.embed(s, sk)
+        tf, tc = net.embed(t, tk)
+        pair = net.pair_features(sf, sc, tf, tc, s, t, rounds)
+        R, t_err = net.residual_pose(pair, sc - tc)
+    return R[0].numpy(), t_err[0].numpy()
+
+
+def test_explicit_rounds_are_the_trained_ones_and_a_gamma_factor_narrows_the_kernel():
+    """``rounds``: the trained rounds named explicitly compute the trained call exactly; γ × 16 on them changes it."""
+    torch.manual_seed(4)
+    cfg = NetConfig(n_points=64, correspondence=True, matching="sinkhorn", reward_head="analytic", match_passes=3)
+    corr = RewardNet(cfg, build_action_table()).eval().correspondence
+    fx, fy = torch.randn(1, 64, 128), torch.randn(1, 70, 128)
+    x, y = torch.randn(1, 64, 3) * 0.3, torch.randn(1, 70, 3) * 0.3
+    pooled = torch.randn(1, 256)
+    with torch.no_grad():
+        trained = corr(fx, fy, x, y, pooled)
+        named = corr(fx, fy, x, y, pooled, [(0, 1.0), (1, 1.0), (2, 1.0)])
+        sharper = corr(fx, fy, x, y, pooled, [(0, 16.0), (1, 16.0), (2, 16.0)])
+    torch.testing.assert_close(named, trained, atol=0.0, rtol=0.0)
+    assert (sharper - trained).abs().max() > 1e-3
+    with pytest.raises(ValueError, match="round"):
+        corr(fx, fy, x, y, pooled, [(3, 1.0)])
+
+
+def test_a_fine_call_matches_a_crop_where_it_lies():
+    """A partial source (one side of the target, its own points) at the true pose: matched in place (the fine
+    call), a sharp position-only match pairs every point with itself and the residual pose is the identity; matched
+    about each cloud's own centroid (the trained call), the crop starts 0.1-0.3 from where it lies and the same match
+    ends off."""
+    from pranet.model.config import FINE_ROUNDS
+
+    net = position_only_net()
+    rng = np.random.default_rng(11)
+    tgt = rng.normal(size=(160, 3)) * [1.0, 0.6, 0.3]
+    src = tgt[tgt[:, 0] > -0.2][:96]  # a crop: its centroid is well off the target's
+    assert np.linalg.norm(src.mean(0) - tgt.mean(0)) > 0.1
+    R_fine, t_fine = residual_of(net, src, tgt, FINE_ROUNDS)
+    np.testing.assert_allclose(R_fine, np.eye(3), atol=1e-4)
+    np.testing.assert_allclose(t_fine, 0.0, atol=1e-4)
+    R_own, t_own = residual_of(net, src, tgt)
+    assert np.linalg.norm(t_own) > 0.02 or np.abs(R_own - np.eye(3)).max() > 0.02
+
+
+def test_a_fine_call_sees_a_translation_and_ignores_a_shift_of_both_clouds():
+    """The fine call's residual follows a translated source (its pair features depend on where the source is,
+    so the runtime cannot re-score it with the head alone) and does not change when both clouds move together."""
+    from pranet.model.config import FINE_ROUNDS
+
+    net = position_only_net()
+    rng = np.random.default_rng(12)
+    src = rng.normal(size=(96, 3)) * [1.0, 0.6, 0.3]
+    tgt = src[rng.permutation(96)]
+    shift, both = np.array([0.02, -0.01, 0.015]), np.array([0.4, 0.3, -0.2])
+    _, t0 = residual_of(net, src, tgt, FINE_ROUNDS)
+    _, t1 = residual_of(net, src + shift, tgt, FINE_ROUNDS)
+    _, t2 = residual_of(net, src + both, tgt + both, FINE_ROUNDS)
+    np.testing.assert_allclose(t0, 0.0, atol=1e-4)
+    np.testing.assert_allclose(t1, -shift, atol=1e-3)
+    np.testing.assert_allclose(t2, t0, atol=1e-4)
 
 
 def test_the_overlap_head_takes_the_points_it_calls_unshared_out_of_the_pose():
