@@ -137,6 +137,14 @@ def _registration_options(parser: argparse.ArgumentParser) -> None:
         help="a network call per agent step, as the paper (default: walk toward each estimate between calls)",
     )
     parser.add_argument(
+        "--fine-matching",
+        dest="fine_matching",
+        action="store_true",
+        default=None,
+        help="with --paper-steps: the fine steps' own network call, matching the clouds where the agent has put "
+        "them (nearer the truth on partial overlap)",
+    )
+    parser.add_argument(
         "--no-polish",
         dest="polish",
         action="store_false",
@@ -171,6 +179,7 @@ def _options_of(args: argparse.Namespace) -> dict[str, Any]:
         "rescue": args.rescue,
         "global_match": args.global_match,
         "walk": args.walk,
+        "fine_matching": args.fine_matching,
         "polish": args.polish,
         "robust_icp": args.robust_icp,
         "init": args.init,

@@ -261,8 +261,8 @@ class PranetClient:
         """Register ``source`` onto ``target``: arrays ``(N, 3)`` / ``(M, 3)`` or point cloud file paths.
 
         ``options`` are passed through to the service (``policy``, ``early_stop``, ``seed``, ``steps``,
-        ``exit_checks``, ``rescue``, ``global_match``, ``walk``, ``polish``, ``robust_icp``, ``return_trajectory``,
-        ``init``, ``starts``); ``None`` values are left out so the server's defaults apply.
+        ``exit_checks``, ``rescue``, ``global_match``, ``walk``, ``fine_matching``, ``polish``, ``robust_icp``,
+        ``return_trajectory``, ``init``, ``starts``); ``None`` values are left out so the server's defaults apply.
         """
         payload: dict[str, Any] = {
             "source": encode_cloud(load_cloud(source), self.compact_threshold),

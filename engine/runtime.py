@@ -339,6 +339,11 @@ class RewardModel:
         return score
 
     @property
+    def has_fine_call(self) -> bool:
+        """Whether the model has the fine phase's call (``score_fine.onnx``; ``RegistrationConfig.fine_matching``)."""
+        return self._fine is not None
+
+    @property
     def analytic(self) -> bool:
         """Whether the rewards follow in closed form from an estimated pose (the ``pose`` of ``batch_score_fn``)."""
         return self.card.get("net", {}).get("reward_head") == "analytic"

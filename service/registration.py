@@ -125,7 +125,7 @@ def _finite_or_none(x: float | None) -> float | None:
 
 
 def request_config(
-    req: RegisterRequest, n_scales: int, base: RegistrationConfig = SERVICE_DEFAULT
+    req: RegisterRequest, n_scales: int, base: RegistrationConfig = SERVICE_DEFAULT, fine_call: bool = True
 ) -> RegistrationConfig:
     """The registration a request asks for: ``base`` (the service's default) with the request's options.
 
@@ -133,10 +133,15 @@ def request_config(
     identity start only; ``rescue: false`` turns the rescues off, ``global_match: false`` the classical global
     candidate, ``walk: false`` the walk (a network call per step, as the paper), ``polish: false`` the polish,
     ``robust_icp: false`` the ICP's kernel on sparse clouds, ``agent_points: null`` the agent's points (the model's
-    own then).
+    own then). ``fine_matching: true`` (with ``walk: false``; ``fine_call``: the model has ``score_fine.onnx``) the
+    fine phase's own network call.
     """
     if req.steps is not None and len(req.steps) != n_scales:
         raise RequestError(422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts")
+    if req.fine_matching and req.walk:
+        raise RequestError(422, "fine_matching scores every fine step by the network: it needs walk=false")
+    if req.fine_matching and not fine_call:
+        raise RequestError(422, "fine_matching: the served model has no fine-phase call (score_fine.onnx)")
     refine = req.icp
     return base.with_(
         icp_stages=base.icp_stages if refine else (),
@@ -155,6 +160,7 @@ def request_config(
         early_stop=req.early_stop,
         schedule=tuple(req.steps) if req.steps is not None else None,
         walk_steps=base.walk_steps if req.walk else 0,
+        fine_matching=req.fine_matching,
         polish=base.polish and refine and req.polish,
     )
 
@@ -178,7 +184,7 @@ def run_registration(
     req = parse_request(body, limits)
     source = decode_cloud(req.source, "source", limits)
     target = decode_cloud(req.target, "target", limits)
-    config = request_config(req, len(engine.scorer.schedule))
+    config = request_config(req, len(engine.scorer.schedule), fine_call=getattr(engine.scorer, "has_fine_call", False))
     decode_ms = (time.perf_counter() - t0) * 1e3
     if time.monotonic() > deadline:
         raise RequestError(504, "registration exceeded the server's time limit before it started (queued too long)")

@@ -154,6 +154,12 @@ class RegisterRequest(_Strict):
         description="let the agent take several steps toward one estimated pose between network calls (a few calls "
         "per registration); false: the paper's protocol, a network call per step",
     )
+    fine_matching: bool = Field(
+        False,
+        description="with walk=false: the fine phase's network calls match the clouds where the agent has put "
+        "them, on the model's position-led matching rounds only (score_fine.onnx); on partial overlap the agent "
+        "alone then stays nearer the truth",
+    )
     polish: bool = Field(
         True,
         description="with icp: refine the winning result once more: with generalized ICP where the surface is "

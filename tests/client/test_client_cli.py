@@ -123,6 +123,10 @@ def test_exit_check_and_rescue_options(fake_service, clouds) -> None:
     assert sent["exit_checks"] == [10, 30] and sent["rescue"] is False
     assert main([*base, "--all-steps"]) == 0
     assert fake_service.requests[-1]["json"]["exit_checks"] == []
+    assert "fine_matching" not in fake_service.requests[-1]["json"]
+    assert main([*base, "--paper-steps", "--fine-matching"]) == 0
+    sent = fake_service.requests[-1]["json"]
+    assert sent["walk"] is False and sent["fine_matching"] is True
 
 
 def test_json_output_is_the_raw_response(fake_service, clouds, capsys) -> None:

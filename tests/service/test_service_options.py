@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import httpx
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 from service_helpers import b64, bumpy_shape, rotation_error_deg
 
@@ -83,6 +84,19 @@ def test_the_walk_needs_a_few_network_calls_where_the_paper_needs_one_per_step(h
     assert walked["network_calls"] <= paper["network_calls"] // 3, (walked["network_calls"], paper["network_calls"])
     for out in (walked, paper):
         assert rotation_error_deg(np.asarray(out["rotation"]), R) < 1.0
+
+
+def test_fine_matching_reaches_the_fine_phase_and_only_with_a_call_per_step(http: httpx.Client) -> None:
+    """``fine_matching`` (with ``walk: false``): the 20 coarse steps are the paper protocol's, the 40 fine ones are
+    scored by the model's fine-phase call, one full call each (its pair features change with a translation, so none
+    is re-scored by the head alone), and they take another path. With the walk it is refused, saying why."""
+    source, target, _ = moved_pair(20.0)
+    common = {"source": b64(source), "target": b64(target), "icp": False, "rescue": False, "walk": False}
+    paper, fine = post(http, **common), post(http, **common, fine_matching=True)
+    assert actions(fine)[:20] == actions(paper)[:20] and actions(fine)[20:] != actions(paper)[20:]
+    assert fine["network_calls"] >= 40 + 1 and fine["network_calls"] > paper["network_calls"]
+    r = http.post("/register", json={**common, "walk": True, "fine_matching": True})
+    assert r.status_code == 422 and "walk" in r.text
 
 
 def test_global_mode_finds_a_150_degree_rotation_the_identity_start_misses(http: httpx.Client) -> None:
@@ -189,3 +203,9 @@ def test_robust_icp_rescue_and_agent_points_map_onto_the_config() -> None:
     assert config(icp=False).rescue_turns is None
     assert default.agent_points == SERVICE_AGENT_POINTS and config(agent_points=None).agent_points is None
     assert config(agent_points=256).agent_points == 256
+    assert config(walk=False, fine_matching=True).fine_matching and not default.fine_matching
+    from pranet.service.registration import RequestError
+
+    request = RegisterRequest(source=cloud, target=cloud, walk=False, fine_matching=True)
+    with pytest.raises(RequestError, match="no fine-phase call"):
+        request_config(request, 2, fine_call=False)
