@@ -34,7 +34,7 @@ import torch
 
 from pranet.core.actions import build_action_table
 from pranet.engine.runtime import FINE_GRAPH, graph_files, head_file, sha256_file
-from pranet.model.config import FINE_ROUNDS, NetConfig, format_rounds
+from pranet.model.config import FINE_ROUNDS, MatchingRound, NetConfig, format_rounds, parse_rounds
 from pranet.model.network import EmbedGraph, HeadGraph, RewardNet, ScoreGraph
 
 OPSET = 17
@@ -66,9 +66,11 @@ def _set_metadata(path: Path, meta: dict[str, str]) -> None:
     onnx.save(m, str(path))
 
 
-def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, Any]:
+def export_model(
+    net: RewardNet, out: Path, card: dict[str, Any], fine_rounds: tuple[MatchingRound, ...] = FINE_ROUNDS
+) -> dict[str, Any]:
     """Write ``embed.onnx``, ``score.onnx``, ``head.onnx``, ``score_fine.onnx`` (when ``has_fine_call``) and
-    ``card.json`` into ``out``; returns the card."""
+    ``card.json`` into ``out``; returns the card. ``fine_rounds``: the fine graph's matching rounds."""
     out.mkdir(parents=True, exist_ok=True)
     for stale in [*out.glob("*.int8.onnx"), out / FINE_GRAPH]:  # made from the previous graphs, if any
         stale.unlink(missing_ok=True)
@@ -111,10 +113,10 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
         opset_version=OPSET,
         dynamo=False,
     )
-    fine = has_fine_call(cfg)
+    fine = has_fine_call(cfg, fine_rounds)
     if fine:
         torch.onnx.export(
-            ScoreGraph(net, FINE_ROUNDS).eval(),
+            ScoreGraph(net, fine_rounds).eval(),
             (pts, knn, pts, feats, cen),
             str(out / FINE_GRAPH),
             input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
@@ -139,7 +141,7 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
     graphs = FP32_GRAPHS
     if fine:
         # Added after the other graphs are stamped, so that a model exported before the fine call keeps their bytes.
-        card = {**card, "fine_matching": {"graph": FINE_GRAPH, "rounds": format_rounds(FINE_ROUNDS)}}
+        card = {**card, "fine_matching": {"graph": FINE_GRAPH, "rounds": format_rounds(fine_rounds)}}
         _set_metadata(out / FINE_GRAPH, {k: json.dumps(v) for k, v in card.items() if k != "files"})
         graphs = (*FP32_GRAPHS, FINE_GRAPH)
     card = {**card, "files": {name: sha256_file(out / name) for name in graphs}}
@@ -147,14 +149,14 @@ def export_model(net: RewardNet, out: Path, card: dict[str, Any]) -> dict[str, A
     return card
 
 
-def has_fine_call(cfg: NetConfig) -> bool:
-    """Whether the network can make the fine phase's call: Sinkhorn matching with every round ``FINE_ROUNDS`` names,
+def has_fine_call(cfg: NetConfig, fine_rounds: tuple[MatchingRound, ...] = FINE_ROUNDS) -> bool:
+    """Whether the network can make the fine phase's call: Sinkhorn matching with every round ``fine_rounds`` names,
     and the analytic reward layer (whose rewards follow from the pose alone, wherever the matching ran)."""
     return (
         cfg.correspondence
         and cfg.matching == "sinkhorn"
         and cfg.reward_head == "analytic"
-        and max(i for i, _ in FINE_ROUNDS) < cfg.match_passes
+        and max(i for i, _ in fine_rounds) < cfg.match_passes
     )
 
 
@@ -207,6 +209,13 @@ def main(argv: list[str] | None = None) -> int:
         help="rounds of Sinkhorn matching in the exported graph (default: as trained); rounds beyond the trained "
         "ones reuse the last round's parameters",
     )
+    p.add_argument(
+        "--fine-rounds",
+        type=parse_rounds,
+        default=FINE_ROUNDS,
+        help=f"the fine-phase graph's matching rounds: trained round indices, gN for γ × N (default "
+        f"{format_rounds(FINE_ROUNDS)})",
+    )
     args = p.parse_args(argv)
     if args.checkpoint is None and not args.int8:
         p.error("a checkpoint is required (or --int8 to quantize the existing model directory --out)")
@@ -215,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         card = card_from_checkpoint(ck, args.name, args.version)
         # Provenance: which checkpoint (path as given, relative to the repository root when run from it).
         card["checkpoint"] = {"path": args.checkpoint.as_posix(), "sha256": sha256_file(args.checkpoint)}
-        card = export_model(net, args.out, card)
+        card = export_model(net, args.out, card, args.fine_rounds)
     if args.int8:
         from pranet.model.quantize import quantize_model_dir
 
