@@ -102,6 +102,15 @@ Cloud = Annotated[
 class RegisterRequest(_Strict):
     """Register ``source`` onto ``target``; the answer is ``T_target_source`` (target ≈ R @ source + t)."""
 
+    # The one rule between fields, stated in the schema so a client (or a fuzzer) generated from it can keep it:
+    # ``fine_matching: true`` needs ``walk: false``. ``request_config`` enforces it with a 422.
+    model_config = ConfigDict(
+        json_schema_extra={
+            "if": {"properties": {"fine_matching": {"const": True}}, "required": ["fine_matching"]},
+            "then": {"properties": {"walk": {"const": False}}, "required": ["walk"]},
+        }
+    )
+
     source: Cloud
     target: Cloud
     icp: bool = Field(

@@ -97,6 +97,21 @@ def test_fine_matching_reaches_the_fine_phase_and_only_with_a_call_per_step(http
     assert fine["network_calls"] >= 40 + 1 and fine["network_calls"] > paper["network_calls"]
     r = http.post("/register", json={**common, "walk": True, "fine_matching": True})
     assert r.status_code == 422 and "walk" in r.text
+    # The published schema states the rule, so a client generated from it can keep it.
+    schema = http.get("/openapi.json").json()["components"]["schemas"]["RegisterRequest"]
+    small = {"source": [[0.0, 0.0, 0.0]] * 3, "target": [[0.0, 0.0, 0.0]] * 3}
+    assert _keeps_the_rule(schema, {**small, "fine_matching": True, "walk": False})
+    assert not _keeps_the_rule(schema, {**small, "fine_matching": True})
+    assert not _keeps_the_rule(schema, {**small, "fine_matching": True, "walk": True})
+    assert _keeps_the_rule(schema, {**small, "walk": True})
+
+
+def _keeps_the_rule(schema: dict, body: dict) -> bool:
+    """Does ``body`` satisfy the request schema's if/then (its only rule between fields)?"""
+    import jsonschema
+
+    rule = {"if": schema["if"], "then": schema["then"]}
+    return jsonschema.Draft202012Validator(rule).is_valid(body)
 
 
 def test_global_mode_finds_a_150_degree_rotation_the_identity_start_misses(http: httpx.Client) -> None:

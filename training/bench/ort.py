@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 import time
 from pathlib import Path
 from typing import Any
@@ -56,7 +57,7 @@ def ort_variants_table(
     round_best: dict[str, list[float]] = {label: [] for label, _, _ in variants}
     round_median: dict[str, list[float]] = {label: [] for label, _, _ in variants}
     embed: dict[str, list[float]] = {label: [] for label, _, _ in variants}
-    graph_calls: dict[str, dict[str, int]] = {label: {"full": 0, "head": 0} for label, _, _ in variants}
+    graph_calls: dict[str, Counter] = {label: Counter(full=0, head=0) for label, _, _ in variants}
     per_round = max(1, min(per_round, calls))
     rounds = max(1, calls // per_round)
     for r in range(rounds):
@@ -95,7 +96,7 @@ def ort_variants_table(
             "vs_default": median([a / b for a, b in zip(round_best[label], round_best[default], strict=True)]),
             "vs_default_busy": median([a / b for a, b in zip(round_median[label], round_median[default], strict=True)]),
             "calls": len(samples[label]),
-            "graph_calls": graph_calls[label],  # score.onnx ("full") and head.onnx runs: head must stay 0
+            "graph_calls": dict(graph_calls[label]),  # score.onnx ("full") and head.onnx runs: head must stay 0
         }
         for label, kw, _ in variants
     ]
