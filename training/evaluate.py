@@ -159,7 +159,7 @@ def pranet_runner(
         traj = [T for _, _, T in reg.trajectory]
         t = reg.timing_ms
         v1_ms = t["preprocess"] + t["target_embedding"] + t["agent_steps"]  # timed as the paper: no confidence
-        extra: dict[str, Any] = {"timing_ms": t, "n_steps": len(traj)}
+        extra: dict[str, Any] = {"timing_ms": t, "n_steps": len(traj), "network_calls": reg.network_calls}
         if reg.agent is not None and reg.agent.stopped_early:
             extra["stopped_early"] = list(reg.agent.stopped_early)
         if "pranet-v1" in methods:
@@ -384,9 +384,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--early-stop", action="store_true", help="end a scale once no action has a positive reward")
     p.add_argument(
         "--fine-matching",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="pranet-v1/v2: the fine phase's network call (score_fine.onnx: position-led rounds in the clouds' "
-        "actual placement) instead of the trained one",
+        "actual placement) instead of the trained one; default: on when the model has it. --no-fine-matching: the "
+        "trained call in both phases (the tables before model 2.2.0's fine call)",
     )
     p.add_argument("--max-angle", type=float, default=60.0, help="max rotation (degrees; per axis for naive)")
     p.add_argument("--rotation", choices=("isotropic", "naive"), default="isotropic")
@@ -447,6 +449,8 @@ def build_methods(args: argparse.Namespace) -> Methods:
         m.model_info["training"] = scorer.card.get("training")
         m.trained_rotation = scorer.card.get("config", {}).get("sampling", {}).get("rotation", "")
         m.switch_step, m.n_steps = int(scorer.schedule[0]), int(sum(scorer.schedule))
+        if args.fine_matching is None:
+            args.fine_matching = scorer.has_fine_call  # recorded as run in the JSON's config and the header
         m.runners.append(pranet_runner(engine, pranet, args.policy, args.early_stop, args.fine_matching))
     if any(name in BASELINE_METHODS for name in args.methods):
         from functools import partial

@@ -151,3 +151,13 @@ def test_cli_noisy_all_methods(data_root, tmp_path):
     assert len({v[1] for v in by_pair.values()}) == 3
     curves = doc["fig5"]
     assert curves["n_pairs"] == 3 and len(curves["chamfer"]["mean"]) == 61
+    # The shipped model has the fine phase's call, so the paper's agent runs it unless told not to: every fine step
+    # is then a full network call (the trained call re-scores a translated source by the head alone).
+    assert doc["config"]["fine_matching"] is True
+    trained = tmp_path / "trained.json"
+    argv = ["--setting", "noisy", "--limit", "3", "--methods", "pranet-v1", "--no-fine-matching"]
+    assert ev.main([*argv, "--json", str(trained), "--data-dir", str(data_root), "--quiet"]) == 0
+    doc_trained = json.loads(trained.read_text())
+    assert doc_trained["config"]["fine_matching"] is False
+    for fine, paper in zip(doc["records"]["pranet-v1"], doc_trained["records"]["pranet-v1"], strict=True):
+        assert fine["network_calls"] >= 40 and fine["network_calls"] > paper["network_calls"], (fine, paper)
