@@ -159,7 +159,8 @@ class RegistrationConfig:
     the paper's v2). ``agent_points``: points per cloud the agent sees, each point once (all of a
     smaller cloud; ``None``: the model's own ``n_points``). ``fine_matching``: the fine phase's network calls match
     the clouds where the agent has put them, on the position-led rounds only (the model's ``score_fine.onnx``;
-    a network call per step, so not with the walk).
+    a network call per step, so not with the walk); ``None``: when the model has that call and the agent makes a
+    network call per step (``uses_fine_call``), ``False``: the trained call in both phases.
     """
 
     icp_stages: tuple[IcpStage, ...] = ()
@@ -186,7 +187,7 @@ class RegistrationConfig:
     agent_points: int | None = None
     rescue_global_starts: float | None = None
     rescue_turns: float | None = None
-    fine_matching: bool = False
+    fine_matching: bool | None = None
 
     def __post_init__(self) -> None:
         check_icp_stages(self.icp_stages)
@@ -219,6 +220,13 @@ class RegistrationConfig:
         if self.fine_matching and self.walk_steps:
             raise ValueError("fine_matching scores every fine step by the network: it needs walk_steps=0")
 
+    def uses_fine_call(self, available: bool) -> bool:
+        """Whether the fine phase goes through the model's fine-phase call, for a model that has one (``available``)
+        or not: ``True`` on a model without it is an error for the caller to raise."""
+        if self.fine_matching is None:
+            return available and not self.walk_steps
+        return self.fine_matching
+
     @property
     def refines(self) -> bool:
         """Whether ICP refines the agent's result (PRANet-v2 and the service) or not (PRANet-v1)."""
@@ -229,7 +237,10 @@ class RegistrationConfig:
         return replace(self, **changes)  # type: ignore[arg-type]
 
 
-# The paper's agent alone: 60 greedy steps, a network call each, no ICP, on the paper's 1024 points per cloud.
+# The paper's agent alone: 60 greedy steps, a network call each, no ICP, on the paper's 1024 points per cloud. The
+# fine steps go through the model's fine-phase call when it has one (``fine_matching=None``), which keeps a
+# near-aligned pair where it is better than the trained call (docs/DESIGN.md, "A fine-phase call");
+# ``with_(fine_matching=False)`` is the trained call in both phases.
 PAPER_V1 = RegistrationConfig(agent_points=PAPER_AGENT_POINTS)
 # The paper's PRANet-v2: the agent's 60 steps, then ICP.
 PAPER_V2 = PAPER_V1.with_(icp_stages=DEFAULT_ICP_STAGES)

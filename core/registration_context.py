@@ -147,11 +147,12 @@ class RegistrationContext:
 
     def loop(self, score_fn: object) -> dict:
         """The agent loop's keyword arguments when it scores with ``score_fn`` (its ``pose``, when the model has
-        one, is what the walk asks; its ``fine``, the fine phase's scorer with ``fine_matching``)."""
+        one, is what the walk asks; its ``fine``, the fine phase's scorer where ``config.uses_fine_call``)."""
         c = self.config
         pose_fn = getattr(score_fn, "pose", None)
-        fine_score_fn = getattr(score_fn, "fine", None) if c.fine_matching else None
-        if c.fine_matching and fine_score_fn is None:
+        available = getattr(score_fn, "fine", None)
+        use_fine = c.uses_fine_call(available is not None)
+        if use_fine and available is None:
             raise ValueError(
                 "fine_matching: this model has no fine-phase call (score_fine.onnx); "
                 "re-export its checkpoint with pranet-export"
@@ -164,7 +165,7 @@ class RegistrationContext:
             "pose_fn": pose_fn,
             "walk_steps": c.walk_steps,
             "confirm_arrival": c.confirm_arrival or not c.refines,
-            "fine_score_fn": fine_score_fn,
+            "fine_score_fn": available if use_fine else None,
         }
 
     @property

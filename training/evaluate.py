@@ -123,11 +123,12 @@ def pranet_runner(
     methods: Sequence[str] = PRANET_METHODS,
     policy: str = "deterministic",
     early_stop: bool = False,
-    fine_matching: bool = False,
+    fine_matching: bool | None = None,
 ) -> Runner:
     """PRANet through ``engine`` (``pranet.engine.Engine``): v1 and v2 from one ``PAPER_V2`` registration (its
     agent-only and refined poses), the adaptive variant as the service's default (``SERVICE_DEFAULT``).
-    ``fine_matching``: the paper's agent makes the fine phase's call (``RegistrationConfig.fine_matching``)."""
+    ``fine_matching``: whether the paper's agent makes the fine phase's call (``RegistrationConfig.fine_matching``;
+    ``None``: when the model has one)."""
     from pranet.core.confidence import estimate_confidence
     from pranet.core.registration_config import PAPER_V1, PAPER_V2, SERVICE_DEFAULT
 
@@ -441,6 +442,7 @@ def build_methods(args: argparse.Namespace) -> Methods:
     m = Methods()
     pranet = [name for name in args.methods if name in PRANET_METHODS]
     if pranet:
+        from pranet.core.registration_config import PAPER_V1
         from pranet.engine.engine import Engine
 
         engine = Engine.load(args.model, threads=args.threads)
@@ -449,9 +451,9 @@ def build_methods(args: argparse.Namespace) -> Methods:
         m.model_info["training"] = scorer.card.get("training")
         m.trained_rotation = scorer.card.get("config", {}).get("sampling", {}).get("rotation", "")
         m.switch_step, m.n_steps = int(scorer.schedule[0]), int(sum(scorer.schedule))
-        if args.fine_matching is None:
-            args.fine_matching = scorer.has_fine_call  # recorded as run in the JSON's config and the header
         m.runners.append(pranet_runner(engine, pranet, args.policy, args.early_stop, args.fine_matching))
+        # As run, for the JSON's config and the header.
+        args.fine_matching = PAPER_V1.with_(fine_matching=args.fine_matching).uses_fine_call(scorer.has_fine_call)
     if any(name in BASELINE_METHODS for name in args.methods):
         from functools import partial
 

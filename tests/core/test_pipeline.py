@@ -499,6 +499,14 @@ def test_fine_matching_scores_the_fine_phase_by_the_models_fine_call():
     config = RegistrationConfig(fine_matching=True)
     reg = register(src, tgt, WithFineCall(), np.random.default_rng(0), config)
     assert oracle.calls == 60 and len(fine_calls) == 40 and len(reg.trajectory) == 60
+    # Unset, the fine call is taken where the model has one and the agent makes a call per step (the paper's
+    # configurations); not with the walk, nor when turned off.
+    for unset_or_off, used in ((RegistrationConfig(), True), (config.with_(fine_matching=False), False)):
+        fine_calls.clear()
+        register(src, tgt, WithFineCall(), np.random.default_rng(0), unset_or_off)
+        assert len(fine_calls) == (40 if used else 0), unset_or_off.fine_matching
+    assert not RegistrationConfig(walk_steps=10).uses_fine_call(True) and RegistrationConfig().uses_fine_call(True)
+    assert not RegistrationConfig().uses_fine_call(False) and config.uses_fine_call(False)
     plain = register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), RegistrationConfig())
     np.testing.assert_allclose(reg.agent_T_target_source, plain.agent_T_target_source, atol=1e-9)
     with pytest.raises(ValueError, match="no fine-phase call"):
