@@ -164,11 +164,12 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
     """FLOPs per call of the graphs, the measured time per call and per agent step, the achieved GFLOP/s.
 
     ``scorer`` must not reuse pair features (``reuse_translations=False``): the timed calls repeat one pose.
-    An agent step's FLOPs average score.onnx and head.onnx calls by the share of steps after a translation
-    in the pranet-v1 records (what the default runtime re-scores with the head alone).
+    An agent step's FLOPs average score.onnx, head.onnx and score_fine.onnx calls by the shares of the steps each
+    scored in the pranet-v1 records (``methods.steps_by_graph``: head.onnx re-scores a step after a translation,
+    score_fine.onnx the fine phase where the paper's configuration takes it).
     """
     from pranet.core.knn import knn_indices
-    from pranet.engine.runtime import HEAD_GRAPH, graph_files
+    from pranet.engine.runtime import FINE_GRAPH, HEAD_GRAPH, graph_files
 
     embed_file, score_file = graph_files("fp32")
     pts = np.asarray(source, dtype=np.float32)[None]
@@ -209,8 +210,19 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
             head_ms.append((time.perf_counter() - t0) * 1e3)
     v1 = [r for r in records if r.method == "pranet-v1" and r.error is None and r.extra.get("n_steps")]
     step_ms = median([r.extra["timing_ms"]["agent_steps"] / r.extra["n_steps"] for r in v1])
-    share = sum(r.extra.get("after_translation", 0) for r in v1) / max(1, sum(r.extra["n_steps"] for r in v1))
-    step_flops = fl_score["flops"] if math.isnan(head_flops) else (1 - share) * fl_score["flops"] + share * head_flops
+    n_steps = max(1, sum(r.extra["n_steps"] for r in v1))
+    share = sum(r.extra.get("after_translation", 0) for r in v1) / n_steps
+    fine_share = sum(r.extra.get("fine_steps", 0) for r in v1) / n_steps
+    fine_flops, fine_ms = 0.0, []
+    if fine_share and f.fine is not None:
+        fine_flops = graph_flops(model_dir / FINE_GRAPH, score_feeds)["flops"]
+        for _ in range(20):
+            t0 = time.perf_counter()
+            f.fine(source, target)
+            fine_ms.append((time.perf_counter() - t0) * 1e3)
+    head_part = 0.0 if math.isnan(head_flops) else share * head_flops
+    score_share = 1 - fine_share - (0.0 if math.isnan(head_flops) else share)
+    step_flops = score_share * fl_score["flops"] + head_part + fine_share * fine_flops
     return {
         "score_flops": fl_score["flops"],
         "score_target_only_flops": fl_score["target_only_flops"],
@@ -223,6 +235,9 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
         "agent_step_ms": step_ms,
         "agent_step_flops": step_flops,
         "head_step_share": share,
+        "fine_flops": fine_flops if fine_ms else math.nan,
+        "fine_ms": median(fine_ms) if fine_ms else math.nan,
+        "fine_step_share": fine_share,
     }
 
 

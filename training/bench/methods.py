@@ -60,12 +60,23 @@ def pranet_method(engine: Any, config: Any) -> MethodFn:
             "candidate": reg.candidate,
             "network_calls": reg.network_calls,
         }
-        if reg.agent is not None:  # steps after a translation: re-scored by head.onnx when the runtime reuses
-            moved = set(np.asarray(engine.scorer.table.translation_indices).tolist())
-            extra["after_translation"] = sum(a.action in moved for a in reg.agent.steps[:-1])
+        if reg.agent is not None:
+            extra.update(steps_by_graph(reg.agent.steps, engine.scorer, config))
         return Outcome(reg.T_target_source, ms, extra)
 
     return run
+
+
+def steps_by_graph(steps: Sequence[Any], scorer: Any, config: Any) -> dict[str, int]:
+    """Which graph scored the agent's ``steps``: ``fine_steps`` through the fine phase's call (``score_fine.onnx``,
+    where ``config.uses_fine_call``), ``after_translation`` the other steps that follow a translation (re-scored by
+    ``head.onnx`` when the runtime reuses), the rest ``score.onnx``."""
+    table = scorer.table
+    fine = config.uses_fine_call(bool(getattr(scorer, "has_fine_call", False)))
+    moved = set(np.asarray(table.translation_indices).tolist())
+    by_fine = [fine and table.actions[s.action].scale > 0 for s in steps]
+    after = [prev.action in moved and not f for prev, f in zip(steps[:-1], by_fine[1:], strict=True)]
+    return {"after_translation": sum(after), "fine_steps": sum(by_fine)}
 
 
 def refined_by(coarse: Callable[[Array, Array, np.random.Generator], Array], icp: Any):
@@ -95,10 +106,16 @@ def baseline_method(fn: Callable[[Array, Array, np.random.Generator], Array]) ->
 
 
 def request_body(
-    pair: Pair, seed: int, icp: bool = True, steps: Sequence[int] | None = None, adaptive: bool = False
+    pair: Pair,
+    seed: int,
+    icp: bool = True,
+    steps: Sequence[int] | None = None,
+    adaptive: bool = False,
+    fine_matching: bool = False,
 ) -> bytes:
     """``adaptive``: the service's default request (exit checks, global match, rescues, the walk, the polish, the
-    robust ICP); else the paper's v2: a network call for every step, then least-squares ICP, nothing else."""
+    robust ICP); else the paper's v2: a network call for every step, then least-squares ICP, nothing else, and
+    with ``fine_matching`` the fine phase's call, as ``PAPER_V2`` in process takes it where the model has one."""
     from pranet.core.registration_config import PAPER_AGENT_POINTS, SERVICE_DEFAULT
     from pranet.core.wire import encode_cloud
 
@@ -117,17 +134,20 @@ def request_body(
     }
     if not adaptive:
         body["agent_points"] = PAPER_AGENT_POINTS  # as the paper's v2 in process
+        body["fine_matching"] = fine_matching
     if steps is not None:
         body["steps"] = list(steps)
     return json.dumps(body).encode()
 
 
-def http_method(client: Any, steps: Sequence[int] | None = None, adaptive: bool = False) -> MethodFn:
+def http_method(
+    client: Any, steps: Sequence[int] | None = None, adaptive: bool = False, fine_matching: bool = False
+) -> MethodFn:
     """``pranet-v2`` (or the adaptive variant) over HTTP; the latency is the client's: encoding, request, parsing."""
 
     def run(pair: Pair, seed: int) -> Outcome:
         t0 = time.perf_counter()
-        body = request_body(pair, seed, steps=steps, adaptive=adaptive)
+        body = request_body(pair, seed, steps=steps, adaptive=adaptive, fine_matching=fine_matching)
         r = client.post("/register", content=body, headers={"Content-Type": "application/json"})
         if r.status_code != 200:
             raise RuntimeError(f"HTTP {r.status_code}: {r.text[:300]}")

@@ -120,6 +120,7 @@ class MethodSet:
     extra: dict[str, MethodFn]
     scorer_full: Any  # every step through score.onnx: the FLOPs table's scorer
     drift: DriftScorer | None
+    paper_fine_call: bool = False  # PAPER_V2 takes the model's fine-phase call: so does its request over HTTP
 
 
 def build_methods(args: argparse.Namespace, engine: Any, model_dir: Path, int8_dir: Path | None) -> MethodSet:
@@ -142,7 +143,8 @@ def build_methods(args: argparse.Namespace, engine: Any, model_dir: Path, int8_d
             lambda s, t, rng: small_gicp_align(s, t, baselines.ICP_MAX_DISTANCE, args.threads)
         ),
     }
-    # Every step through score.onnx (no head-only re-scoring of translated sources): what that reuse buys.
+    # No head-only re-scoring of translated sources (every trained-call step through score.onnx): what that reuse
+    # buys. With the fine phase's call only the coarse phase reuses.
     scorer_full = RewardModel.load(model_dir, threads=args.threads, reuse_translations=False)
     extra = {"pranet-full": pranet_method(Engine(scorer_full), v2)}
     if args.early_stop:
@@ -153,7 +155,7 @@ def build_methods(args: argparse.Namespace, engine: Any, model_dir: Path, int8_d
         extra["pranet-int8"] = pranet_method(Engine(scorer8), v2)
         drift = DriftScorer(engine.scorer, scorer8)
         extra["drift"] = pranet_method(Engine(drift), v1)
-    return MethodSet(main, extra, scorer_full, drift)
+    return MethodSet(main, extra, scorer_full, drift, v2.uses_fine_call(engine.scorer.has_fine_call))
 
 
 def run_interleaved(
@@ -168,7 +170,7 @@ def run_interleaved(
     with served(server_settings(args.model, args.threads, 1, "fp32"), tmp) as server:
         client = httpx.Client(base_url=server.url, timeout=120.0)
         if "pranet-v2-http" in args.methods:
-            fns["pranet-v2-http"] = http_method(client, args.steps)
+            fns["pranet-v2-http"] = http_method(client, args.steps, fine_matching=methods.paper_fine_call)
         if "pranet-adaptive-http" in args.methods:
             fns["pranet-adaptive-http"] = http_method(client, args.steps, adaptive=True)
         order = [m for m in args.methods if m in fns] + list(methods.extra)
