@@ -160,6 +160,16 @@ def unit_clouds(pair: Pair, n_points: int, seed: int) -> tuple[Array, Array]:
     return resample(norm.to_unit(src), n_points, rng), resample(norm.to_unit(tgt), n_points, rng)
 
 
+def times_ms(call: Any, n: int) -> list[float]:
+    """Wall times of ``n`` calls of ``call()``, in milliseconds."""
+    out = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        call()
+        out.append((time.perf_counter() - t0) * 1e3)
+    return out
+
+
 def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, records: Sequence[Record]) -> dict:
     """FLOPs per call of the graphs, the measured time per call and per agent step, the achieved GFLOP/s.
 
@@ -186,15 +196,9 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
     fl_embed = graph_flops(model_dir / embed_file, {"points": tpts, "knn": tknn})
     f = scorer.score_fn(target)
     f(source, target)
-    score_ms, embed_ms, head_ms = [], [], []
-    for _ in range(50):
-        t0 = time.perf_counter()
-        f(source, target)
-        score_ms.append((time.perf_counter() - t0) * 1e3)
-    for _ in range(10):
-        t0 = time.perf_counter()
-        scorer.embed(tpts)
-        embed_ms.append((time.perf_counter() - t0) * 1e3)
+    score_ms = times_ms(lambda: f(source, target), 50)
+    embed_ms = times_ms(lambda: scorer.embed(tpts), 10)
+    head_ms: list[float] = []
     head_flops = math.nan
     if (model_dir / HEAD_GRAPH).is_file():
         import onnxruntime as ort
@@ -204,10 +208,7 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
         head_feeds = {"pair_features": pair, "offset": np.zeros((1, 3), np.float32)}
         head_flops = graph_flops(model_dir / HEAD_GRAPH, head_feeds)["flops"]
         head = ort.InferenceSession(str(model_dir / HEAD_GRAPH), providers=["CPUExecutionProvider"])
-        for _ in range(50):
-            t0 = time.perf_counter()
-            head.run(None, head_feeds)
-            head_ms.append((time.perf_counter() - t0) * 1e3)
+        head_ms = times_ms(lambda: head.run(None, head_feeds), 50)
     v1 = [r for r in records if r.method == "pranet-v1" and r.error is None and r.extra.get("n_steps")]
     step_ms = median([r.extra["timing_ms"]["agent_steps"] / r.extra["n_steps"] for r in v1])
     n_steps = max(1, sum(r.extra["n_steps"] for r in v1))
@@ -216,10 +217,7 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
     fine_flops, fine_ms = 0.0, []
     if fine_share and f.fine is not None:
         fine_flops = graph_flops(model_dir / FINE_GRAPH, score_feeds)["flops"]
-        for _ in range(20):
-            t0 = time.perf_counter()
-            f.fine(source, target)
-            fine_ms.append((time.perf_counter() - t0) * 1e3)
+        fine_ms = times_ms(lambda: f.fine(source, target), 20)
     head_part = 0.0 if math.isnan(head_flops) else share * head_flops
     score_share = 1 - fine_share - (0.0 if math.isnan(head_flops) else share)
     step_flops = score_share * fl_score["flops"] + head_part + fine_share * fine_flops
