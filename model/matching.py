@@ -124,14 +124,27 @@ def horn_rotation(H: Tensor, squarings: int = 24) -> Tensor:
     return R.view(-1, 3, 3)
 
 
+# The floor of every exponent in the matching. Far-apart pairs under a narrow distance kernel have logits of -100
+# and below, whose exp is a subnormal float32 or 0; onnxruntime's Exp takes 13× longer on those (4.7 against 0.35 ms
+# per million entries on an Intel Xeon without flush-to-zero, which the calling thread of a one-thread session does
+# not get: docs/DESIGN.md, "Subnormal exponents"). exp(-80) = 1.8e-35 is a normal float; a million of them add less
+# than float32's resolution to any sum the matching takes (each is >= 1/((N+1)(M+1)): sinkhorn_with_slack).
+EXP_FLOOR = -80.0
+
+
+def floored_exp(x: Tensor) -> Tensor:
+    """``exp(max(x, EXP_FLOOR))``: ``exp`` without subnormal results."""
+    return x.clamp(min=EXP_FLOOR).exp()
+
+
 def logsumexp(x: Tensor, dim: int, stabilised: bool = True) -> Tensor:
     """``log Σ exp(x)`` along ``dim`` (kept), stabilised by the maximum unless the caller knows ``exp`` cannot
     overflow or underflow to an all-zero sum. Written out because onnxruntime's ``ReduceLogSumExp`` kernel is
     several times slower on the CPU than these five element-wise ops."""
     if not stabilised:
-        return x.exp().sum(dim=dim, keepdim=True).log()
+        return floored_exp(x).sum(dim=dim, keepdim=True).log()
     m = x.amax(dim=dim, keepdim=True).detach()
-    return m + (x - m).exp().sum(dim=dim, keepdim=True).log()
+    return m + floored_exp(x - m).sum(dim=dim, keepdim=True).log()
 
 
 def sinkhorn_with_slack(logits: Tensor, iterations: int) -> Tensor:
@@ -150,7 +163,7 @@ def sinkhorn_with_slack(logits: Tensor, iterations: int) -> Tensor:
     for k in range(iterations):
         padded = padded - real_rows * logsumexp(padded, dim=2, stabilised=k == 0)
         padded = padded - real_cols * logsumexp(padded, dim=1, stabilised=False)
-    return padded[:, :-1, :-1].exp()
+    return floored_exp(padded[:, :-1, :-1])
 
 
 def weighted_procrustes(P: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:

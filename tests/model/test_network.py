@@ -250,17 +250,18 @@ def test_sinkhorn_with_slack_is_doubly_stochastic_and_drops_unmatched_points():
 
 
 def test_sinkhorn_normalised_without_the_maximum_equals_the_fully_stabilised_one():
-    """Only the first normalisation subtracts the maximum; the result must be the textbook log-domain Sinkhorn's
-    (every normalisation stabilised), also for logits far beyond exp's float32 range."""
-    from pranet.model.matching import logsumexp, sinkhorn_with_slack
+    """Only the first normalisation subtracts the maximum, and every exponent is floored (``EXP_FLOOR``); the result
+    must be the textbook log-domain Sinkhorn's (torch's ``logsumexp`` at every normalisation), also for logits far
+    beyond exp's float32 range."""
+    from pranet.model.matching import sinkhorn_with_slack
 
     def textbook(logits, iterations):
         padded = torch.nn.functional.pad(logits, (0, 1, 0, 1))
         rows = torch.nn.functional.pad(torch.ones_like(logits[:, :, :1]), (0, 0, 0, 1))
         cols = torch.nn.functional.pad(torch.ones_like(logits[:, :1, :]), (0, 1, 0, 0))
         for _ in range(iterations):
-            padded = padded - rows * logsumexp(padded, dim=2)
-            padded = padded - cols * logsumexp(padded, dim=1)
+            padded = padded - rows * torch.logsumexp(padded, dim=2, keepdim=True)
+            padded = padded - cols * torch.logsumexp(padded, dim=1, keepdim=True)
         return padded[:, :-1, :-1].exp()
 
     torch.manual_seed(9)
@@ -547,3 +548,17 @@ def test_a_network_with_fresh_point_pair_features_scores_as_it_did_without():
         torch.testing.assert_close(new(src, knn_s, tgt, knn_t), old(src, knn_s, tgt, knn_t))
         torch.nn.init.normal_(new.embedding.point_pairs.net[2].weight, std=1.0)
         assert not torch.allclose(new(src, knn_s, tgt, knn_t), old(src, knn_s, tgt, knn_t), atol=1e-3)
+
+
+def test_the_floored_exponent_is_exp_where_float32_has_normal_numbers():
+    """``floored_exp`` equals ``exp`` down to ``EXP_FLOOR`` and never returns a subnormal number below it (what makes
+    onnxruntime's Exp slow); a logsumexp over a row of very negative logits still finds its largest term."""
+    from pranet.model.matching import EXP_FLOOR, floored_exp, logsumexp
+
+    x = torch.linspace(EXP_FLOOR, 30.0, 2001)
+    torch.testing.assert_close(floored_exp(x), x.exp(), rtol=1e-6, atol=0.0)
+    below = floored_exp(torch.tensor([-90.0, -100.0, -200.0, -1e4]))
+    assert (below >= torch.finfo(torch.float32).tiny).all()
+    assert (below <= torch.tensor(EXP_FLOOR).exp() * (1 + 1e-6)).all()
+    row = torch.tensor([[-300.0, -150.0, -500.0]])
+    torch.testing.assert_close(logsumexp(row, dim=1), torch.logsumexp(row, dim=1, keepdim=True))
