@@ -141,9 +141,11 @@ class RegistrationContext:
 
     @property
     def network_calls(self) -> int:
-        """Full network evaluations so far, from the score functions that count them (``RewardModel``'s do)."""
+        """Network evaluations so far, from the score functions that count them (``RewardModel``'s do): the full calls
+        of both phases and the fine phase's match-only ones (its Sinkhorn rounds, most of a fine call's cost); not the
+        head-only re-scorings (microseconds)."""
         calls = [getattr(fn, "calls", {}) for fn in self.scorers]
-        return sum(int(c.get("full", 0)) + int(c.get("fine", 0)) for c in calls)
+        return sum(int(c.get(graph, 0)) for c in calls for graph in ("full", "fine", "match"))
 
     def loop(self, score_fn: object) -> dict:
         """The agent loop's keyword arguments when it scores with ``score_fn`` (its ``pose``, when the model has

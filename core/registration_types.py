@@ -125,7 +125,7 @@ class Registration:
     candidates: dict[str, float] = field(default_factory=dict)  # every candidate tried -> its best confidence
     resolution: Resolution | None = None  # the data's resolution, world units
     n_used: tuple[int, int] = (0, 0)  # points of (source, target) the registration worked on (after the cap)
-    network_calls: int = 0  # source poses the reward network scored (full evaluations; the head-only ones not)
+    network_calls: int = 0  # source poses the reward network scored (full and match-only calls; head-only ones not)
 
     @property
     def rescued(self) -> str | None:

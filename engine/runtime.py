@@ -12,6 +12,9 @@ translated source has the same features, attention and soft correspondences; onl
 fed to the heads changes. ``score.onnx`` also returns those pair features, and when a source's centred
 points equal a row of the previous call's (to ``SAME_SHAPE_ATOL``: the last action was a translation),
 it is re-scored with ``head.onnx`` (the heads alone, microseconds) instead of the whole network.
+The fine phase's call (``score_fine.onnx``) matches the clouds as placed, so a translation changes its soft
+correspondences, but not the features, attention, feature similarity or matching parameters it computes them
+from: it returns those, and ``match_fine.onnx`` re-runs only the matching rounds for a translated source.
 For a network with the analytic reward layer, the score function's ``pose`` gives the estimated residual pose
 itself (``core.agent``'s walk), from the same call.
 The rewards agree with a full call to float32 rounding (``tests/model/test_export_runtime.py``). Model
@@ -47,6 +50,9 @@ HEAD_INT8_GRAPH = "head.int8.onnx"
 # the card's ``fine_matching`` names its rounds.
 FINE_GRAPH = "score_fine.onnx"
 FINE_INT8_GRAPH = "score_fine.int8.onnx"
+# Optional: the fine call's matching rounds alone, which re-score a translated source from the last fine call's
+# cached similarity. It has no learned weights of its own to quantize, so both precisions run it.
+FINE_MATCH_GRAPH = "match_fine.onnx"
 OPTIMIZATION_LEVELS = ("none", "basic", "extended", "all")
 EXECUTION_MODES = ("sequential", "parallel")
 # Centred source points within this (unit frame) of the previous call's: the same orientation, so the
@@ -75,13 +81,38 @@ def fine_file(precision: str = "fp32") -> str:
 
 def card_graphs(card: dict[str, Any], precision: str = "fp32") -> tuple[str, ...]:
     """The graph files of ``precision`` that ``card`` describes: embed, score and (when listed) the head and the
-    fine-phase score graph."""
+    fine-phase score graph, then the fine phase's match-only graph (the same file in both precisions)."""
+    return quantized_graphs(card, precision) + (
+        (FINE_MATCH_GRAPH,) if FINE_MATCH_GRAPH in card.get("files", {}) else ()
+    )
+
+
+def quantized_graphs(card: dict[str, Any], precision: str = "fp32") -> tuple[str, ...]:
+    """``card_graphs`` of ``precision`` that have an int8 counterpart (all but the match-only graph)."""
     files = card.get("files", {})
     return (
         graph_files(precision)
         + ((head_file(precision),) if HEAD_GRAPH in files else ())
         + ((fine_file(precision),) if FINE_GRAPH in files else ())
     )
+
+
+def same_shape_rows(centred: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+    """For each row of ``centred: (B, N, 3)`` (source points about their centroid), the row of ``previous: (B', N,
+    3)`` it equals to ``SAME_SHAPE_ATOL`` (only translated since), or -1."""
+    if previous is None:
+        return np.full(len(centred), -1)
+    d = np.abs(centred[:, None] - previous[None]).max(axis=(2, 3))  # (B, B')
+    best = d.argmin(axis=1)
+    return np.where(d[np.arange(len(centred)), best] <= SAME_SHAPE_ATOL, best, -1)
+
+
+def scatter(b: int, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """One ``(b, ...)`` array from ``(row indices, values)`` parts that cover its rows between them."""
+    out = np.empty((b, *parts[0][1].shape[1:]), dtype=parts[0][1].dtype)
+    for rows, values in parts:
+        out[rows] = values
+    return out
 
 
 class ModelLoadError(RuntimeError):
@@ -122,7 +153,7 @@ def read_card(model_dir: Path, verify: bool = True, precision: str = "fp32") -> 
                 f"no {precision} graphs in {model_dir} (missing or not in the card: {', '.join(missing)}); "
                 f"write them with: pranet-export --int8 --out {model_dir}"
             )
-        if any(made_from.get(name) != files.get(name) for name in card_graphs(card)):
+        if any(made_from.get(name) != files.get(name) for name in quantized_graphs(card)):
             raise ModelLoadError(
                 f"the {precision} graphs in {model_dir} were made from other fp32 graphs than the card's (stale); "
                 f"re-run: pranet-export --int8 --out {model_dir}"
@@ -155,6 +186,7 @@ class RewardModel:
     _score_inputs: tuple[str, ...] = ()
     _head: Any = None  # head.onnx session, or None: every step runs score.onnx
     _fine: Any = None  # score_fine.onnx session, or None: the model has no fine-phase call
+    _match: Any = None  # match_fine.onnx session, or None: every fine step runs score_fine.onnx
 
     precision: str = "fp32"
     reuse_translations: bool = True  # re-score translated sources with the head alone (when _head exists)
@@ -194,9 +226,9 @@ class RewardModel:
             }
         except Exception as e:  # onnxruntime raises its own exception types for bad files
             raise ModelLoadError(f"onnxruntime cannot load {model_dir}: {e}") from e
-        # The model's identity: the graphs every registration runs (a fine-phase graph added to a model directory
-        # leaves it as it was).
-        core = [g for g in graphs if g != fine_file(precision)]
+        # The model's identity: the graphs every registration runs (the fine-phase graphs added to a model directory
+        # leave it as it was).
+        core = [g for g in graphs if g not in (fine_file(precision), FINE_MATCH_GRAPH)]
         digest = hashlib.sha256("".join(card["files"][g] for g in core).encode()).hexdigest()
         embed, score = graph_files(precision)
         return cls(
@@ -211,6 +243,7 @@ class RewardModel:
             _score_inputs=tuple(i.name for i in sessions[score].get_inputs()),
             _head=sessions.get(head_file(precision)),
             _fine=sessions.get(fine_file(precision)),
+            _match=sessions.get(FINE_MATCH_GRAPH),
             precision=precision,
             reuse_translations=reuse_translations,
         )
@@ -267,24 +300,31 @@ class RewardModel:
         centred points match a row of the previous call (only translated since) is re-scored by the head
         graph; the others go through ``score.onnx`` together. Counts in ``score.calls`` (rows).
         ``score.fine`` (``None`` without ``score_fine.onnx``) is the fine phase's scorer on the same target
-        embedding: every row through ``score_fine.onnx`` (its pair features change with a translation), counted in
-        ``calls["fine"]``.
+        embedding: its pair features change with a translation, so a row goes through ``score_fine.onnx`` (counted in
+        ``calls["fine"]``) unless it is only translated since the previous fine call and the model has
+        ``match_fine.onnx``: then that graph re-runs the matching rounds alone from the cached similarity (counted in
+        ``calls["match"]``).
         """
         t_pts = np.asarray(target, dtype=np.float32)[None]  # (1, M, 3)
         t_feat, t_cen, _ = self.embed(t_pts)
         tiled: dict[int, tuple[np.ndarray, ...]] = {}  # B -> (knn, target points, features, centroid) tiled
         head = self._head if self.reuse_translations else None
+        match_graph = self._match if self.reuse_translations else None
         cache: dict[str, np.ndarray] = {}  # "centred": (B', N, 3) and "pair": (B', P) of the previous call
-        calls = {"full": 0, "head": 0, "fine": 0}
+        fine_cache: dict[str, np.ndarray] = {}  # "centred", "similarity", "match_params" of the previous fine call
+        calls = {"full": 0, "head": 0, "fine": 0, "match": 0}
 
-        def run(pts: np.ndarray, names: list[str], fine: bool = False) -> list[np.ndarray]:
+        def tiles(pts: np.ndarray) -> tuple[np.ndarray, ...]:
             b = len(pts)
             if b not in tiled:
                 knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.k)  # (1, N, k)
                 tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, t_pts, t_feat, t_cen))
-            knn, tp, tf, tc = tiled[b]
+            return tiled[b]
+
+        def run(pts: np.ndarray, names: list[str], fine: bool = False) -> list[np.ndarray]:
+            knn, tp, tf, tc = tiles(pts)
             feeds = {"points": pts, "knn": knn, "target_points": tp, "target_features": tf, "target_centroid": tc}
-            calls["fine" if fine else "full"] += b
+            calls["fine" if fine else "full"] += len(pts)
             session = self._fine if fine else self._score
             return session.run(names, {name: feeds[name] for name in self._score_inputs})
 
@@ -306,11 +346,7 @@ class RewardModel:
                 return full(pts)[0]
             centroids = pts.mean(axis=1, keepdims=True)  # (B, 1, 3)
             centred = pts - centroids
-            match = np.full(len(pts), -1)
-            if cache:
-                d = np.abs(centred[:, None] - cache["centred"][None]).max(axis=(2, 3))  # (B, B')
-                best = d.argmin(axis=1)
-                match = np.where(d[np.arange(len(pts)), best] <= SAME_SHAPE_ATOL, best, -1)
+            match = same_shape_rows(centred, cache.get("centred"))
             rewards = np.empty((len(pts), len(self.table)), dtype=np.float32)
             pair = np.empty((len(pts), 0), dtype=np.float32)
             new = np.flatnonzero(match < 0)
@@ -331,7 +367,33 @@ class RewardModel:
             return rewards
 
         def fine_score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
-            return run(np.ascontiguousarray(sources, dtype=np.float32), ["rewards"], fine=True)[0]
+            pts = np.ascontiguousarray(sources, dtype=np.float32)
+            if match_graph is None:
+                return run(pts, ["rewards"], fine=True)[0]
+            centred = pts - pts.mean(axis=1, keepdims=True)
+            match = same_shape_rows(centred, fine_cache.get("centred"))
+            new, old = np.flatnonzero(match < 0), np.flatnonzero(match >= 0)
+            parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {
+                "rewards": [],
+                "similarity": [],
+                "match_params": [],
+            }
+            if len(new):
+                out = run(pts[new], list(parts), fine=True)
+                for name, values in zip(parts, out, strict=True):
+                    parts[name].append((new, values))
+            if len(old):
+                # Only translated since the last fine call: the same similarity and (β, γ, α), a new placement.
+                kept = {name: fine_cache[name][match[old]] for name in ("similarity", "match_params")}
+                _, tp, _, tc = tiles(pts[old])
+                feeds = {"points": pts[old], "target_points": tp, "target_centroid": tc, **kept}
+                parts["rewards"].append((old, match_graph.run(["rewards"], feeds)[0]))
+                for name, values in kept.items():
+                    parts[name].append((old, values))
+                calls["match"] += len(old)
+            rows = {name: scatter(len(pts), found) for name, found in parts.items()}
+            fine_cache.update(centred=centred, similarity=rows["similarity"], match_params=rows["match_params"])
+            return rows["rewards"]
 
         score.calls = calls  # type: ignore[attr-defined]
         score.pose = pose if self.analytic else None  # type: ignore[attr-defined]
@@ -342,6 +404,11 @@ class RewardModel:
     def has_fine_call(self) -> bool:
         """Whether the model has the fine phase's call (``score_fine.onnx``; ``RegistrationConfig.fine_matching``)."""
         return self._fine is not None
+
+    @property
+    def has_match_call(self) -> bool:
+        """Whether translated sources of the fine phase are re-scored by ``match_fine.onnx`` (when reusing)."""
+        return self._match is not None and self.reuse_translations
 
     @property
     def analytic(self) -> bool:

@@ -12,7 +12,11 @@ per registration:
 
 - ``score_fine.onnx`` (Sinkhorn networks with the rounds it names): ``score.onnx``'s inputs and outputs, the
   fine phase's call, whose matching runs ``FINE_ROUNDS`` with both clouds about the target's centroid
-  (``RewardNet.pair_features``); the card's ``fine_matching`` says so. Its pair features change with a translation.
+  (``RewardNet.fine_call``); the card's ``fine_matching`` says so. Its pair features change with a translation;
+  it also returns ``similarity (B, N, M)`` and ``match_params (B, passes, 3)``, which do not.
+- ``match_fine.onnx``: ``points, target_points, target_centroid, similarity, match_params -> rewards``, the fine
+  call's matching rounds alone (``MatchGraph``), which re-score a translated source from the last fine call's
+  ``similarity`` and ``match_params`` (networks without an overlap head; the card's ``fine_matching.match_graph``).
 
 and ``card.json``: preset, N, k, the action table (scales, names, fingerprint), the schedule, the
 network config, the training summary and the sha256 of both graphs (checked at load). The same
@@ -33,9 +37,9 @@ from typing import Any
 import torch
 
 from pranet.core.actions import build_action_table
-from pranet.engine.runtime import FINE_GRAPH, graph_files, head_file, sha256_file
+from pranet.engine.runtime import FINE_GRAPH, FINE_MATCH_GRAPH, graph_files, head_file, sha256_file
 from pranet.model.config import FINE_ROUNDS, MatchingRound, NetConfig, format_rounds, parse_rounds
-from pranet.model.network import EmbedGraph, HeadGraph, RewardNet, ScoreGraph
+from pranet.model.network import EmbedGraph, FineScoreGraph, HeadGraph, MatchGraph, RewardNet, ScoreGraph
 
 OPSET = 17
 FP32_GRAPHS = (*graph_files("fp32"), head_file("fp32"))
@@ -72,7 +76,11 @@ def export_model(
     """Write ``embed.onnx``, ``score.onnx``, ``head.onnx``, ``score_fine.onnx`` (when ``has_fine_call``) and
     ``card.json`` into ``out``; returns the card. ``fine_rounds``: the fine graph's matching rounds."""
     out.mkdir(parents=True, exist_ok=True)
-    for stale in [*out.glob("*.int8.onnx"), out / FINE_GRAPH]:  # made from the previous graphs, if any
+    for stale in [
+        *out.glob("*.int8.onnx"),
+        out / FINE_GRAPH,
+        out / FINE_MATCH_GRAPH,
+    ]:  # made from the previous graphs, if any
         stale.unlink(missing_ok=True)
     cfg = net.cfg
     N, k = cfg.n_points, cfg.k
@@ -113,18 +121,7 @@ def export_model(
         opset_version=OPSET,
         dynamo=False,
     )
-    fine = has_fine_call(cfg, fine_rounds)
-    if fine:
-        torch.onnx.export(
-            ScoreGraph(net, fine_rounds).eval(),
-            (pts, knn, pts, feats, cen),
-            str(out / FINE_GRAPH),
-            input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
-            output_names=["rewards", "pair_features"],
-            dynamic_axes=score_axes,
-            opset_version=OPSET,
-            dynamo=False,
-        )
+    fine_graphs = export_fine_graphs(net, out, (pts, knn, pts, feats, cen), score_axes, fine_rounds)
     torch.onnx.export(
         HeadGraph(net).eval(),
         (pair, cen - cen),
@@ -139,14 +136,65 @@ def export_model(
     for name in FP32_GRAPHS:
         _set_metadata(out / name, meta)
     graphs = FP32_GRAPHS
-    if fine:
+    if fine_graphs:
         # Added after the other graphs are stamped, so that a model exported before the fine call keeps their bytes.
-        card = {**card, "fine_matching": {"graph": FINE_GRAPH, "rounds": format_rounds(fine_rounds)}}
-        _set_metadata(out / FINE_GRAPH, {k: json.dumps(v) for k, v in card.items() if k != "files"})
-        graphs = (*FP32_GRAPHS, FINE_GRAPH)
+        entry = {"graph": FINE_GRAPH, "rounds": format_rounds(fine_rounds)}
+        match = {"match_graph": FINE_MATCH_GRAPH} if FINE_MATCH_GRAPH in fine_graphs else {}
+        card = {**card, "fine_matching": {**entry, **match}}
+        for name in fine_graphs:
+            _set_metadata(out / name, {k: json.dumps(v) for k, v in card.items() if k != "files"})
+        graphs = (*FP32_GRAPHS, *fine_graphs)
     card = {**card, "files": {name: sha256_file(out / name) for name in graphs}}
     (out / "card.json").write_text(json.dumps(card, indent=2) + "\n")
     return card
+
+
+def export_fine_graphs(
+    net: RewardNet,
+    out: Path,
+    example: tuple[torch.Tensor, ...],
+    score_axes: dict[str, dict[int, str]],
+    fine_rounds: tuple[MatchingRound, ...],
+) -> tuple[str, ...]:
+    """Write the fine phase's graphs (``has_fine_call``): ``score_fine.onnx`` and, without an overlap head (whose
+    prior the match-only graph would have to carry too), ``match_fine.onnx``. ``example``: ``score.onnx``'s inputs.
+    Returns the file names written."""
+    if not has_fine_call(net.cfg, fine_rounds):
+        return ()
+    match_only = not net.cfg.overlap_head
+    cached = {"similarity": {0: "batch", 1: "n", 2: "m"}, "match_params": {0: "batch"}} if match_only else {}
+    torch.onnx.export(
+        (FineScoreGraph(net, fine_rounds) if match_only else ScoreGraph(net, fine_rounds)).eval(),
+        example,
+        str(out / FINE_GRAPH),
+        input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
+        output_names=["rewards", "pair_features", *cached],
+        dynamic_axes={**score_axes, **cached},
+        opset_version=OPSET,
+        dynamo=False,
+    )
+    if not match_only:
+        return (FINE_GRAPH,)
+    pts, _, target, feats, cen = example
+    with torch.no_grad():
+        _, similarity, params = net.fine_call(feats, cen, feats, cen, pts, target, fine_rounds)
+    torch.onnx.export(
+        MatchGraph(net, fine_rounds).eval(),
+        (pts, target, cen, similarity, params),
+        str(out / FINE_MATCH_GRAPH),
+        input_names=["points", "target_points", "target_centroid", "similarity", "match_params"],
+        output_names=["rewards"],
+        dynamic_axes={
+            "points": {0: "batch", 1: "n"},
+            "target_points": {0: "batch", 1: "m"},
+            "target_centroid": {0: "batch"},
+            **cached,
+            "rewards": {0: "batch"},
+        },
+        opset_version=OPSET,
+        dynamo=False,
+    )
+    return FINE_GRAPH, FINE_MATCH_GRAPH
 
 
 def has_fine_call(cfg: NetConfig, fine_rounds: tuple[MatchingRound, ...] = FINE_ROUNDS) -> bool:

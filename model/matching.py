@@ -181,6 +181,10 @@ def weighted_procrustes(P: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor
     return R, y_mean - (R @ x_mean.unsqueeze(-1)).squeeze(-1)
 
 
+# ``SinkhornCorrespondence.prepare``'s tensors: (similarity (B, N, M), params (B, passes, 3), overlap prior or None).
+Prepared = tuple[Tensor, Tensor, Tensor | None]
+
+
 class SinkhornCorrespondence(nn.Module):
     """The residual pose ``y ≈ R x + r`` of the centred source ``x`` against the centred target ``y``.
 
@@ -220,6 +224,8 @@ class SinkhornCorrespondence(nn.Module):
             nn.init.constant_(self.overlap.bias, self.OVERLAP_START_BIAS)
         # The last call's overlap logits ``((B, N), (B, M))``, for the training loss (None without the head).
         self.overlap_logits: tuple[Tensor, Tensor] | None = None
+        # The last call's ``prepare``d tensors (``forward``), for the fine phase's match-only graph.
+        self.prepared: Prepared | None = None
         self.passes = passes
         self.params = nn.Sequential(nn.Linear(2 * pooled_dim, 64), nn.ReLU(), nn.Linear(64, 3 * passes))
         self.register_buffer("param_scales", torch.tensor(self.PARAM_SCALES), persistent=False)
@@ -233,19 +239,35 @@ class SinkhornCorrespondence(nn.Module):
 
     def forward(
         self,
-        fx: Tensor,
-        fy: Tensor,
+        fx: Tensor | None,
+        fy: Tensor | None,
         x: Tensor,
         y: Tensor,
-        pooled: Tensor,
+        pooled: Tensor | None,
         rounds: Sequence[MatchingRound] | None = None,
+        prepared: Prepared | None = None,
     ) -> Tensor:
         """``rounds`` (default ``self.rounds()``): ``(parameter index, γ scale)`` per round, in order; a scale above 1
-        narrows that round's distance kernel (the fine phase's schedule, ``model.config.FINE_ROUNDS``)."""
+        narrows that round's distance kernel (the fine phase's schedule, ``model.config.FINE_ROUNDS``).
+        ``prepared``: ``prepare``'s tensors of an earlier call on the same clouds (then ``fx``, ``fy`` and ``pooled``
+        are not read): only the rounds run, on the clouds as placed now. Each call keeps its ``prepare``d tensors
+        in ``self.prepared``. Both go through the module's call, so the exported nodes keep the ``/correspondence``
+        names that ``model.quantize`` keeps in fp32."""
+        # One batch size, read from x first, for both parts: the trace, and so score.onnx, stays node for node as it
+        # was before the two parts were split.
         B = x.shape[0]
-        rounds = self.rounds() if rounds is None else rounds
-        if any(not 0 <= i < self.passes for i, _ in rounds):
-            raise ValueError(f"rounds {list(rounds)} name a round this network has not ({self.passes} trained)")
+        if prepared is None:
+            if fx is None or fy is None or pooled is None:
+                raise ValueError("the features and pooled vectors are needed without prepared tensors")
+            prepared = self.prepare(fx, fy, pooled, B)
+        self.prepared = prepared
+        return self.match(*prepared, x, y, rounds, B)
+
+    def prepare(self, fx: Tensor, fy: Tensor, pooled: Tensor, batch: int | None = None) -> Prepared:
+        """What the matching takes from the features: ``(similarity (B, N, M), params (B, passes, 3), prior)``, the
+        cosines of the projected features, every round's ``(β, γ, α)`` and the overlap head's log-prior (``None``
+        without the head). None of it depends on where the clouds are, only on their shapes and orientations."""
+        B = fx.shape[0] if batch is None else batch
         params = nn.functional.softplus(self.params(pooled)).view(B, self.passes, 3) * self.param_scales
         qx = nn.functional.normalize(self.q(fx), dim=-1)  # (B, N, D)
         ky = nn.functional.normalize(self.k(fy), dim=-1)  # (B, M, D)
@@ -255,6 +277,24 @@ class SinkhornCorrespondence(nn.Module):
             ox, oy = self.overlap(fx).squeeze(-1), self.overlap(fy).squeeze(-1)  # (B, N), (B, M)
             self.overlap_logits = (ox, oy)
             prior = nn.functional.logsigmoid(ox).unsqueeze(2) + nn.functional.logsigmoid(oy).unsqueeze(1)
+        return similarity, params, prior
+
+    def match(
+        self,
+        similarity: Tensor,
+        params: Tensor,
+        prior: Tensor | None,
+        x: Tensor,
+        y: Tensor,
+        rounds: Sequence[MatchingRound] | None = None,
+        batch: int | None = None,
+    ) -> Tensor:
+        """The rounds of matching from ``prepare``'s tensors, on the clouds ``x: (B, N, 3)`` and ``y: (B, M, 3)`` as
+        placed -> ``(B, 12)``. A translated source needs only this part again (``model.network.MatchGraph``)."""
+        B = x.shape[0] if batch is None else batch
+        rounds = self.rounds() if rounds is None else rounds
+        if any(not 0 <= i < self.passes for i, _ in rounds):
+            raise ValueError(f"rounds {list(rounds)} name a round this network has not ({self.passes} trained)")
         y_sq = (y * y).sum(-1).unsqueeze(1)  # (B, 1, M)
         R = torch.eye(3, dtype=x.dtype, device=x.device).expand(B, 3, 3)
         r = torch.zeros_like(x[:, 0])

@@ -15,7 +15,7 @@ from torch import Tensor, nn
 from pranet.core.actions import ActionTable
 from pranet.model.config import MatchingRound, NetConfig
 from pranet.model.embedding import DGCNN
-from pranet.model.matching import SinkhornCorrespondence, SoftCorrespondence
+from pranet.model.matching import Prepared, SinkhornCorrespondence, SoftCorrespondence
 
 
 class Attention(nn.Module):
@@ -152,6 +152,14 @@ class RewardNet(nn.Module):
             points = points - centroid.unsqueeze(1)
         return self.embedding(points, knn), centroid
 
+    def attend(self, src: Tensor, tgt: Tensor) -> tuple[Tensor, Tensor, list[Tensor]]:
+        """Both clouds' embeddings after the Transformer blocks, and their pooled vectors ``[(B, pooled)] * 2``: none
+        of it depends on where either cloud is (with ``center_inputs``)."""
+        for block in self.blocks:
+            # Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X) with shared weights (paper, "Architecture").
+            src, tgt = block(src, tgt), block(tgt, src)
+        return src, tgt, [self._pool(src), self._pool(tgt)]
+
     def _pool(self, x: Tensor) -> Tensor:
         if self.cfg.pool == "maxmean":
             return torch.cat([x.amax(dim=1), x.mean(dim=1)], dim=-1)
@@ -176,16 +184,14 @@ class RewardNet(nn.Module):
         about the target's centroid, where the agent has put them, rather than each about its own; the pose is
         returned in the same centred convention, and it now depends on where the source is.
         """
-        for block in self.blocks:
-            # Φ_X = F_X + φ(F_X, F_Y), Φ_Y = F_Y + φ(F_Y, F_X) with shared weights (paper, "Architecture").
-            src, tgt = block(src, tgt), block(tgt, src)
-        parts = [self._pool(src), self._pool(tgt)]
+        src, tgt, parts = self.attend(src, tgt)
         if self.correspondence is not None:
             if src_points is None or tgt_points is None:
                 raise ValueError("this network needs the points of both clouds (correspondence=True)")
             x = src_points - src_centroid.unsqueeze(1)
             y = tgt_points - tgt_centroid.unsqueeze(1)
             if isinstance(self.correspondence, SinkhornCorrespondence):
+                # Concatenated after x and y, as before the fine call's refactor: score.onnx stays node for node.
                 pooled = torch.cat(parts, dim=-1)
                 if fine_rounds is None:
                     pose = self.correspondence(src, tgt, x, y, pooled)
@@ -200,22 +206,46 @@ class RewardNet(nn.Module):
 
     def placed_pose(
         self,
-        src: Tensor,
-        tgt: Tensor,
+        src: Tensor | None,
+        tgt: Tensor | None,
         x: Tensor,
         y: Tensor,
-        pooled: Tensor,
+        pooled: Tensor | None,
         offset: Tensor,
         rounds: Sequence[MatchingRound],
+        prepared: Prepared | None = None,
     ) -> Tensor:
         """The matching's ``(B, 12)`` pose ``y ≈ R x + r`` (centred clouds ``x``, ``y``; ``offset`` = source − target
-        centroid), found by matching ``x + offset`` against ``y``: both about the target's centroid."""
+        centroid), found by matching ``x + offset`` against ``y``: both about the target's centroid. ``prepared``:
+        the matching's tensors of an earlier call on the same shapes (``SinkhornCorrespondence.forward``), which a
+        translation leaves as they are; then ``src``, ``tgt`` and ``pooled`` are not read."""
         if not isinstance(self.correspondence, SinkhornCorrespondence):
             raise ValueError("a fine-phase call needs matching='sinkhorn'")
-        pose = self.correspondence(src, tgt, x + offset.unsqueeze(1), y, pooled, rounds)
+        pose = self.correspondence(src, tgt, x + offset.unsqueeze(1), y, pooled, rounds, prepared)
         R, r_placed = pose[:, :9].reshape(-1, 3, 3), pose[:, 9:12]
         # y ≈ R (x + offset) + r_placed = R x + (r_placed + R offset).
         return torch.cat([pose[:, :9], r_placed + (R @ offset.unsqueeze(-1)).squeeze(-1)], dim=-1)
+
+    def fine_call(
+        self,
+        src: Tensor,
+        src_centroid: Tensor,
+        tgt: Tensor,
+        tgt_centroid: Tensor,
+        src_points: Tensor,
+        tgt_points: Tensor,
+        rounds: Sequence[MatchingRound],
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The fine phase's call on embeddings (analytic Sinkhorn networks without an overlap head) -> ``(pose
+        (B, 12), similarity (B, N, M), params (B, passes, 3))``: ``pair_features(..., fine_rounds=rounds)``, and what
+        ``MatchGraph`` needs to score the same source translated."""
+        pose = self.pair_features(src, src_centroid, tgt, tgt_centroid, src_points, tgt_points, rounds)
+        if not isinstance(self.correspondence, SinkhornCorrespondence) or self.correspondence.prepared is None:
+            raise ValueError("a fine-phase call needs matching='sinkhorn'")
+        similarity, params, prior = self.correspondence.prepared
+        if prior is not None:
+            raise ValueError("a network with an overlap head has no match-only call")
+        return pose, similarity, params
 
     def residual_pose(self, pair: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
         """Analytic head: ``pair: (B, 12)``, ``offset: (B, 3)`` -> ``(R_err (B, 3, 3), t_err (B, 3))``.
@@ -302,6 +332,57 @@ class ScoreGraph(nn.Module):
             src, centroid, target_features, target_centroid, points, target_points, self.fine_rounds
         )
         return self.net.head(pair, centroid - target_centroid), pair
+
+
+class FineScoreGraph(nn.Module):
+    """The fine phase's graph (``score_fine.onnx``): ``ScoreGraph(net, rounds)``'s inputs -> ``(rewards,
+    pair_features, similarity, match_params)``, the last two what ``MatchGraph`` needs to score the same source
+    after a translation (``RewardNet.fine_call``)."""
+
+    def __init__(self, net: RewardNet, rounds: Sequence[MatchingRound]) -> None:
+        super().__init__()
+        self.net = net
+        self.rounds = tuple(rounds)
+
+    def forward(
+        self, points: Tensor, knn: Tensor, target_points: Tensor, target_features: Tensor, target_centroid: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        src, centroid = self.net.embed(points, knn)
+        pair, similarity, params = self.net.fine_call(
+            src, centroid, target_features, target_centroid, points, target_points, self.rounds
+        )
+        return self.net.head(pair, centroid - target_centroid), pair, similarity, params
+
+
+class MatchGraph(nn.Module):
+    """The fine phase's match-only graph (``match_fine.onnx``): ``(points, target_points, target_centroid,
+    similarity, match_params) -> rewards``.
+
+    A translation leaves the source's features, the attention, the feature similarity and the rounds' ``(β, γ, α)``
+    as they were (``center_inputs``); only the matching rounds, which run on the clouds as placed, see it. So a
+    translated source is re-scored from ``FineScoreGraph``'s ``similarity`` and ``match_params`` with the rounds
+    alone, with what ``score_fine.onnx`` would return for it.
+    """
+
+    def __init__(self, net: RewardNet, rounds: Sequence[MatchingRound]) -> None:
+        super().__init__()
+        self.net = net
+        self.rounds = tuple(rounds)
+
+    def forward(
+        self,
+        points: Tensor,
+        target_points: Tensor,
+        target_centroid: Tensor,
+        similarity: Tensor,
+        match_params: Tensor,
+    ) -> Tensor:
+        centroid = points.mean(dim=1)  # as RewardNet.embed has it
+        x = points - centroid.unsqueeze(1)
+        y = target_points - target_centroid.unsqueeze(1)
+        offset = centroid - target_centroid
+        pair = self.net.placed_pose(None, None, x, y, None, offset, self.rounds, (similarity, match_params, None))
+        return self.net.head(pair, offset)
 
 
 class HeadGraph(nn.Module):

@@ -281,7 +281,9 @@ class RegisterResponse(BaseModel):
     )
     network_calls: int = Field(
         0,
-        description="how many source poses the reward network scored this request (each a full network evaluation)",
+        description="how many source poses the reward network scored this request: full network evaluations, and the "
+        "fine phase's match-only calls (its matching rounds on a translated source); not the translations "
+        "re-scored by the reward layer alone",
     )
     spacing: float | None = Field(
         None,

@@ -191,7 +191,7 @@ def test_translated_sources_are_rescored_by_the_head_alone(exported):
         pose = (pose - pose.mean(0)) @ R.T + pose.mean(0) if isinstance(move, str) else pose + np.asarray(move)
         poses.append(pose)
     got = [fn(p, tgt) for p in poses]
-    assert fn.calls == {"full": 2, "head": 4, "fine": 0}  # first call and the rotation are full calls
+    assert fn.calls == {"full": 2, "head": 4, "fine": 0, "match": 0}  # first call and the rotation are full calls
     for p, g in zip(poses, got, strict=True):
         np.testing.assert_allclose(g, _torch_rewards(net, p.astype(np.float32), tgt), rtol=1e-4, atol=2e-5)
     # The translation changes the rewards (the head sees the offset): the cached path is not a stale answer.
@@ -199,7 +199,7 @@ def test_translated_sources_are_rescored_by_the_head_alone(exported):
     plain = RewardModel.load(out, threads=1, reuse_translations=False).score_fn(tgt)
     for p, g in zip(poses, got, strict=True):
         np.testing.assert_allclose(plain(p, tgt), g, rtol=1e-4, atol=2e-5)
-    assert plain.calls == {"full": 6, "head": 0, "fine": 0}
+    assert plain.calls == {"full": 6, "head": 0, "fine": 0, "match": 0}
 
 
 def test_models_without_a_head_graph_still_load(exported, tmp_path):
@@ -215,7 +215,7 @@ def test_models_without_a_head_graph_still_load(exported, tmp_path):
     tgt = np.random.default_rng(5).standard_normal((128, 3)).astype(np.float32)
     fn = model.score_fn(tgt)
     a, b = fn(tgt, tgt), fn(tgt + 0.1, tgt)
-    assert fn.calls == {"full": 2, "head": 0, "fine": 0} and np.abs(a - b).max() > 1e-3
+    assert fn.calls == {"full": 2, "head": 0, "fine": 0, "match": 0} and np.abs(a - b).max() > 1e-3
 
 
 def test_batched_rows_that_only_moved_are_rescored_by_the_head(exported):
@@ -236,7 +236,12 @@ def test_batched_rows_that_only_moved_are_rescored_by_the_head(exported):
     plain = RewardModel.load(out, threads=1, reuse_translations=False).batch_score_fn(tgt)
     for batch in (starts, second, third):
         np.testing.assert_allclose(fast(batch, tgt), plain(batch, tgt), rtol=1e-4, atol=2e-5)
-    assert fast.calls == {"full": 3 + 1, "head": 2 + 2, "fine": 0} and plain.calls == {"full": 8, "head": 0, "fine": 0}
+    assert fast.calls == {"full": 3 + 1, "head": 2 + 2, "fine": 0, "match": 0} and plain.calls == {
+        "full": 8,
+        "head": 0,
+        "fine": 0,
+        "match": 0,
+    }
 
 
 def test_the_walks_pose_gives_the_networks_own_rewards(exported):
@@ -324,6 +329,84 @@ def test_the_fine_graph_is_the_torch_fine_call(exported):
     # network (4.5e-5 seen on one of 48 rewards).
     np.testing.assert_allclose(fine, torch.stack(ref).numpy(), rtol=1e-4, atol=1e-4)
     assert np.abs(fine[0] - _torch_rewards(net, src, tgt)).max() > 1e-3  # not the trained call
-    assert score.calls == {"full": 0, "head": 0, "fine": 2}
+    assert score.calls == {"full": 0, "head": 0, "fine": 2, "match": 0}
     single = model.score_fn(tgt)
     np.testing.assert_allclose(single.fine(src, tgt), fine[0], rtol=1e-4, atol=1e-4)
+
+
+def test_a_translated_source_is_rescored_by_the_match_graph(exported):
+    """``match_fine.onnx``: after a translation the fine scorer re-runs only the matching rounds, from the previous
+    fine call's similarity and parameters, and returns what a full fine call returns for the translated source
+    (itself torch's ``ScoreGraph(net, FINE_ROUNDS)``); a turned source goes through ``score_fine.onnx`` again. An
+    overlap-head network has no match graph and runs every fine step in full."""
+    from pranet.model.config import FINE_ROUNDS
+    from pranet.model.network import ScoreGraph
+
+    net, out = exported
+    model = RewardModel.load(out, threads=1)
+    if not model.has_fine_call:
+        return
+    card = read_card(out)
+    if net.cfg.overlap_head:
+        assert "match_fine.onnx" not in card["files"] and "match_graph" not in card["fine_matching"]
+        assert model._match is None
+        return
+    assert card["fine_matching"]["match_graph"] == "match_fine.onnx" and "match_fine.onnx" in card["files"]
+    rng = np.random.default_rng(11)
+    tgt = rng.standard_normal((150, 3)).astype(np.float32) * 0.4
+    src = rng.standard_normal((128, 3)).astype(np.float32) * 0.4
+    c, s = np.cos(0.2), np.sin(0.2)
+    turned = src @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], np.float32).T
+    steps = [src, src + np.float32([0.03, 0.0, 0.0]), src + np.float32([0.03, -0.02, 0.01]), turned, turned + 0.02]
+    fast, plain = (RewardModel.load(out, threads=1, reuse_translations=r).score_fn(tgt) for r in (True, False))
+    got = np.stack([fast.fine(p, tgt) for p in steps])
+    full = np.stack([plain.fine(p, tgt) for p in steps])
+    assert fast.calls == {"full": 0, "head": 0, "fine": 2, "match": 3}, fast.calls
+    assert plain.calls == {"full": 0, "head": 0, "fine": 5, "match": 0}, plain.calls
+    np.testing.assert_allclose(got, full, rtol=1e-4, atol=1e-4)
+    assert np.abs(got[1] - got[0]).max() > 1e-3  # the translation changed the rewards: not a copy of the last call
+    with torch.no_grad():
+        tf, tc = net.embed(torch.from_numpy(tgt[None]), torch.from_numpy(knn_indices(tgt[None], 16)))
+        knn = torch.from_numpy(knn_indices(src[None], 16))
+        graph = ScoreGraph(net, FINE_ROUNDS)
+        ref = graph(torch.from_numpy(steps[2][None]), knn, torch.from_numpy(tgt[None]), tf, tc)[0][0].numpy()
+    np.testing.assert_allclose(got[2], ref, rtol=1e-4, atol=1e-4)
+
+
+def test_the_match_graph_reuses_rows_of_a_batch(exported):
+    """Batched fine calls (the global mode's starts): each row is re-scored from the cached row it is a translation
+    of, whatever its position in the batch, and a row new to the cache goes through ``score_fine.onnx``."""
+    net, out = exported
+    model = RewardModel.load(out, threads=1)
+    if model._match is None:
+        return
+    rng = np.random.default_rng(12)
+    tgt = rng.standard_normal((150, 3)).astype(np.float32) * 0.4
+    a = rng.standard_normal((128, 3)).astype(np.float32) * 0.4
+    b = a[:, [1, 0, 2]] * np.float32([1, -1, 1])  # a turned copy of a (a quarter turn about z)
+    fast = model.batch_score_fn(tgt)
+    fast.fine(np.stack([a, b]), tgt)
+    moved = np.stack([b + 0.02, a - 0.01, a[:, [2, 1, 0]]])  # b and a translated (swapped), then a new orientation
+    got = fast.fine(moved, tgt)
+    assert fast.calls["fine"] == 3 and fast.calls["match"] == 2, fast.calls
+    plain = RewardModel.load(out, threads=1, reuse_translations=False).batch_score_fn(tgt)
+    np.testing.assert_allclose(got, plain.fine(moved, tgt), rtol=1e-4, atol=1e-4)
+
+
+def test_every_exponent_of_the_shipped_graphs_is_floored():
+    """Each Exp node of the shipped matching graphs reads a Clip's output (``model.matching.floored_exp``): an Exp of
+    subnormal results costs onnxruntime 13× the time on CPUs without flush-to-zero, and a re-export that lost the
+    floor would slow every network call again (docs/DESIGN.md, "Subnormal exponents")."""
+    import onnx
+
+    model_dir = default_model_dir()
+    graphs = [g for g in read_card(model_dir)["files"] if g.endswith(".onnx")]
+    checked = 0
+    for name in graphs:
+        graph = onnx.load(str(model_dir / name)).graph
+        producer = {out: node for node in graph.node for out in node.output}
+        for node in graph.node:
+            if node.op_type == "Exp":
+                assert producer[node.input[0]].op_type == "Clip", (name, node.name)
+                checked += 1
+    assert checked >= 33 * 2 + 44 * 2, checked  # score.onnx's rounds, the fine call's, in fp32 and int8
