@@ -174,9 +174,10 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
     """FLOPs per call of the graphs, the measured time per call and per agent step, the achieved GFLOP/s.
 
     ``scorer`` must not reuse pair features (``reuse_translations=False``): the timed calls repeat one pose.
-    An agent step's FLOPs average score.onnx, head.onnx and score_fine.onnx calls by the shares of the steps each
-    scored in the pranet-v1 records (``methods.steps_by_graph``: head.onnx re-scores a step after a translation,
-    score_fine.onnx the fine phase where the paper's configuration takes it).
+    An agent step's FLOPs average score.onnx, head.onnx, score_fine.onnx and match_fine.onnx calls by the shares of
+    the steps each scored in the pranet-v1 records (``methods.steps_by_graph``: head.onnx re-scores a step after a
+    translation, score_fine.onnx the fine phase where the paper's configuration takes it, match_fine.onnx a fine
+    step after a fine translation).
     """
     from pranet.core.knn import knn_indices
     from pranet.engine.runtime import FINE_GRAPH, HEAD_GRAPH, graph_files
@@ -214,13 +215,15 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
     n_steps = max(1, sum(r.extra["n_steps"] for r in v1))
     share = sum(r.extra.get("after_translation", 0) for r in v1) / n_steps
     fine_share = sum(r.extra.get("fine_steps", 0) for r in v1) / n_steps
+    match_share = sum(r.extra.get("match_steps", 0) for r in v1) / n_steps
     fine_flops, fine_ms = 0.0, []
-    if fine_share and f.fine is not None:
+    if (fine_share or match_share) and f.fine is not None:
         fine_flops = graph_flops(model_dir / FINE_GRAPH, score_feeds)["flops"]
         fine_ms = times_ms(lambda: f.fine(source, target), 20)
+    match_flops, match_ms = match_graph_cost(model_dir, scorer, score_feeds) if match_share else (0.0, [])
     head_part = 0.0 if math.isnan(head_flops) else share * head_flops
-    score_share = 1 - fine_share - (0.0 if math.isnan(head_flops) else share)
-    step_flops = score_share * fl_score["flops"] + head_part + fine_share * fine_flops
+    score_share = 1 - fine_share - match_share - (0.0 if math.isnan(head_flops) else share)
+    step_flops = score_share * fl_score["flops"] + head_part + fine_share * fine_flops + match_share * match_flops
     return {
         "score_flops": fl_score["flops"],
         "score_target_only_flops": fl_score["target_only_flops"],
@@ -236,7 +239,36 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
         "fine_flops": fine_flops if fine_ms else math.nan,
         "fine_ms": median(fine_ms) if fine_ms else math.nan,
         "fine_step_share": fine_share,
+        "match_flops": match_flops if match_ms else math.nan,
+        "match_ms": median(match_ms) if match_ms else math.nan,
+        "match_step_share": match_share,
     }
+
+
+def match_graph_cost(model_dir: Path, scorer: Any, score_feeds: dict[str, Array]) -> tuple[float, list[float]]:
+    """``match_fine.onnx``'s FLOPs and call times (ms) on the matching inputs ``score_fine.onnx`` returns for
+    ``score_feeds``' source, translated: the fine phase's step after a translation. Timed in ``scorer``'s own
+    session (its thread count), as the fine call is."""
+    import onnxruntime as ort
+
+    from pranet.engine.runtime import FINE_GRAPH, FINE_MATCH_GRAPH
+
+    fine = ort.InferenceSession(str(model_dir / FINE_GRAPH), providers=["CPUExecutionProvider"])
+    feeds = {i.name: score_feeds[i.name] for i in fine.get_inputs()}
+    similarity, params = fine.run(["similarity", "match_params"], feeds)
+    match_feeds = {
+        "points": score_feeds["points"] + np.float32(0.01),
+        "target_points": score_feeds["target_points"],
+        "target_centroid": score_feeds["target_centroid"],
+        "similarity": similarity,
+        "match_params": params,
+    }
+    session = scorer._match or ort.InferenceSession(
+        str(model_dir / FINE_MATCH_GRAPH), providers=["CPUExecutionProvider"]
+    )
+    return graph_flops(model_dir / FINE_MATCH_GRAPH, match_feeds)["flops"], times_ms(
+        lambda: session.run(None, match_feeds), 20
+    )
 
 
 def sgemm_table(threads: int) -> list[dict[str, Any]]:

@@ -69,14 +69,18 @@ def pranet_method(engine: Any, config: Any) -> MethodFn:
 
 def steps_by_graph(steps: Sequence[Any], scorer: Any, config: Any) -> dict[str, int]:
     """Which graph scored the agent's ``steps``: ``fine_steps`` through the fine phase's call (``score_fine.onnx``,
-    where ``config.uses_fine_call``), ``after_translation`` the other steps that follow a translation (re-scored by
-    ``head.onnx`` when the runtime reuses), the rest ``score.onnx``."""
+    where ``config.uses_fine_call``), ``match_steps`` the fine steps that follow a fine-phase translation (re-scored
+    by ``match_fine.onnx`` where the runtime has it), ``after_translation`` the other steps that follow a translation
+    (re-scored by ``head.onnx`` when the runtime reuses), the rest ``score.onnx``."""
     table = scorer.table
     fine = config.uses_fine_call(bool(getattr(scorer, "has_fine_call", False)))
+    match = fine and bool(getattr(scorer, "has_match_call", False))
     moved = set(np.asarray(table.translation_indices).tolist())
     by_fine = [fine and table.actions[s.action].scale > 0 for s in steps]
-    after = [prev.action in moved and not f for prev, f in zip(steps[:-1], by_fine[1:], strict=True)]
-    return {"after_translation": sum(after), "fine_steps": sum(by_fine)}
+    pairs = list(zip(steps[:-1], by_fine[:-1], by_fine[1:], strict=True))
+    after = [prev.action in moved and not f for prev, _, f in pairs]
+    by_match = [match and prev.action in moved and f_prev and f for prev, f_prev, f in pairs]
+    return {"after_translation": sum(after), "fine_steps": sum(by_fine) - sum(by_match), "match_steps": sum(by_match)}
 
 
 def refined_by(coarse: Callable[[Array, Array, np.random.Generator], Array], icp: Any):

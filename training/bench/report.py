@@ -202,13 +202,20 @@ def _flops(result: dict[str, Any]) -> list[str]:
         )
         rows = []
         share, fine_share = fl.get("head_step_share", 0.0), fl.get("fine_step_share", 0.0)
+        match_share = fl.get("match_step_share", 0.0)
         for label, flops, ms in (
             ("score.onnx, one call (a step after a rotation)", fl["score_flops"], fl["score_ms"]),
             ("head.onnx, one call (a step after a translation)", fl.get("head_flops", math.nan), fl.get("head_ms")),
             ("score_fine.onnx, one call (a fine-phase step)", fl.get("fine_flops", math.nan), fl.get("fine_ms")),
             (
+                "match_fine.onnx, one call (a fine-phase step after a translation)",
+                fl.get("match_flops", math.nan),
+                fl.get("match_ms"),
+            ),
+            (
                 f"agent step incl. Python (agent_steps / steps; {100 * share:.0f} % by head.onnx after a "
-                f"translation, {100 * fine_share:.0f} % by score_fine.onnx)",
+                f"translation, {100 * fine_share:.0f} % by score_fine.onnx, {100 * match_share:.0f} % by "
+                "match_fine.onnx)",
                 fl.get("agent_step_flops", fl["score_flops"]),
                 fl["agent_step_ms"],
             ),
