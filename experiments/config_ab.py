@@ -9,13 +9,18 @@ candidates wait their turn" and "An exit check halfway through the coarse phase"
     python experiments/config_ab.py --modelnet 150 --set "exit_checks=(20,40)"
     python experiments/config_ab.py PAIRS.csv --constant-b icp.DENSE_TOLERANCE=1e-6 --repeats 2
     python experiments/config_ab.py PAIRS.csv --constant-b icp.TARGET_VOXEL_SPACINGS=4.0
+    python experiments/config_ab.py --modelnet 30 --base paper-v1 --model-a /tmp/old-model
+
+``--model-a`` / ``--model-b``: model directories (default: the shipped one), so that two exports of one checkpoint
+can be timed side by side; ``--base``: the configuration both start from (the service default, or the paper's v1 or
+v2).
 
 ``--constant-b``: a constant of a ``pranet.engine`` module (``MODULE.NAME=VALUE``, a Python literal) set to another
 value while B warms up and registers, and restored after. B has an engine of its own (the same model), so constants
 read when its ICP functions are made (``icp.DENSE_TOLERANCE``: docs/DESIGN.md, "ICP tolerance on dense clouds") count
 as well as those read during a registration.
 
-A is the service default; B is the default with the ``--set`` changes (RegistrationConfig fields, Python literals).
+A is the base configuration; B is the base with the ``--set`` changes (RegistrationConfig fields, Python literals).
 """
 
 import argparse
@@ -25,10 +30,12 @@ import statistics
 import time
 
 from pranet.client.io import read_point_cloud
-from pranet.core.registration_config import SERVICE_DEFAULT
+from pranet.core.registration_config import PAPER_V1, PAPER_V2, SERVICE_DEFAULT
 from pranet.engine.content_cache import LastByContent
 from pranet.engine.engine import Engine
 from pranet.training.bench.scan_pairs import is_right, pose_errors, read_pairs, thresholds_for
+
+BASES = {"service": SERVICE_DEFAULT, "paper-v1": PAPER_V1, "paper-v2": PAPER_V2}
 
 
 def parse_args():
@@ -41,6 +48,9 @@ def parse_args():
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--constant-b", action="append", default=[], metavar="MODULE.NAME=VALUE", help="B's engine constant")
     p.add_argument("--skip", default="lidar", help="skip pairs whose id contains this ('' = none)")
+    p.add_argument("--base", choices=sorted(BASES), default="service", help="the configuration A and B start from")
+    p.add_argument("--model-a", default=None, help="A's model directory (default: the shipped model)")
+    p.add_argument("--model-b", default=None, help="B's model directory (default: the shipped model)")
     return p.parse_args()
 
 
@@ -121,20 +131,24 @@ def parse_constants(items: list[str]) -> dict[tuple[str, str], object]:
 def main() -> None:
     args = parse_args()
     changes = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
-    configs = {"A": SERVICE_DEFAULT, "B": SERVICE_DEFAULT.with_(**changes)}
-    engine = Engine.load(threads=args.threads)
+    base = BASES[args.base]
+    configs = {"A": base, "B": base.with_(**changes)}
+    engine = Engine.load(args.model_a, threads=args.threads)
+    engine_b = engine if args.model_b == args.model_a else Engine.load(args.model_b, threads=args.threads)
     constants = parse_constants(args.constant_b)
-    engines = {"A": engine, "B": PatchedEngine(Engine(engine.scorer), constants) if constants else engine}
+    engines = {"A": engine, "B": PatchedEngine(Engine(engine_b.scorer), constants) if constants else engine_b}
     for e in engines.values():
         e.warm_up()
     b_engine = "".join(f", {m}.{n}={v!r}" for (m, n), v in constants.items())
+    models = {k: engines[k].scorer.info() if hasattr(engines[k], "scorer") else {} for k in "AB"}
+    print("models: " + ", ".join(f"{k} {m.get('version')} {str(m.get('sha256'))[:12]}" for k, m in models.items()))
     if args.modelnet:
-        print(f"A: the service default; B: {changes}{b_engine}; {args.threads} thread(s)")
+        print(f"A: {args.base}; B: {changes}{b_engine}; {args.threads} thread(s)")
         modelnet(args, engines, configs)
         return
     medians = {"A": [], "B": []}
     right = {"A": 0, "B": 0}
-    print(f"A: the service default; B: {changes}{b_engine}; {args.repeats} runs each, {args.threads} thread(s)")
+    print(f"A: {args.base}; B: {changes}{b_engine}; {args.repeats} runs each, {args.threads} thread(s)")
     for i, pair in enumerate(read_pairs(args.pairs_csv)):
         if args.skip and args.skip in pair.id:
             continue
