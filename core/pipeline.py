@@ -172,11 +172,27 @@ def agent_from_input_pose(ctx: RegistrationContext, score_fn: ScoreFn, until: in
 def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -> None:
     """Global mode: the coarse phase from every start at once (batched), then the rest of the schedule from the
     ``refine_top`` most confident only: the fine phase polishes, it does not decide which start wins, and each
-    start costs a score call per step. The others keep their coarse-phase result."""
+    start costs a score call per step. The others keep their coarse-phase result.
+
+    With ICP and an exit check at or before the coarse phase's end, the most confident start is refined and scored
+    there first, and a ``sure`` result (``RegistrationContext.sure``) ends the search: ICP finishes what the fine
+    phase would have polished, and the other starts and the global match could only tie with it."""
     config = ctx.config
     ctx.starts = global_starts(ctx)
-    segments = split_schedule(ctx.schedule, (ctx.schedule[0],))
-    ctx.agents, ctx.start_scores = from_starts(ctx, score_fn, ctx.starts, segments)
+    coarse, *fine = split_schedule(ctx.schedule, (ctx.schedule[0],))
+    ctx.agents, ctx.start_scores = from_starts(ctx, score_fn, ctx.starts, coarse)
+    if ctx.icp is not None and any(0 < c <= ctx.schedule[0] for c in config.exit_checks):
+        b = _top(ctx.start_scores, 1)[0]
+        checked = ctx.offer(AGENT, ctx.agents[b].transform, agent_index=b)
+        ctx.checks.append((len(ctx.agents[b].steps), checked.confidence.score))
+        if ctx.sure:
+            return
+    if fine:
+        keep = _top(ctx.start_scores, config.refine_top)
+        more, scores = from_starts(ctx, score_fn, np.stack([ctx.agents[b].transform for b in keep]), fine[0])
+        for b, part, score in zip(keep, more, scores, strict=True):
+            extend(ctx.agents[b], part)
+            ctx.start_scores[b] = score  # only the starts that went on moved: the others keep their coarse score
     for b in _top(ctx.start_scores, config.refine_top if ctx.icp is not None else 1):
         ctx.offer(AGENT, ctx.agents[b].transform, agent_index=b)
 
@@ -189,29 +205,14 @@ def global_starts(ctx: RegistrationContext) -> Array:
 
 
 def from_starts(
-    ctx: RegistrationContext, score_fn: BatchScoreFn, starts: Array, segments: Sequence[tuple[int, ...]]
+    ctx: RegistrationContext, score_fn: BatchScoreFn, starts: Array, segment: tuple[int, ...]
 ) -> tuple[list[AgentResult], list[float]]:
-    """The agent from every start at once through the first segment of the schedule, then through the rest from the
-    ``refine_top`` most confident only; each run and its quick confidence."""
-    c, config = ctx.clouds, ctx.config
+    """The agent from every start at once (batched) through ``segment`` of the schedule; each run and its quick
+    confidence."""
+    c = ctx.clouds
     with ctx.timer.stage("agent_steps"):
-        agents = run_agent_batch(
-            c.src_n, c.tgt_n, score_fn, ctx.scorer.table, starts, segments[0], **ctx.loop(score_fn)
-        )
-    scores = ctx.quick_scores(agents)
-    if len(segments) > 1:
-        keep = _top(scores, config.refine_top)
-        pose = np.stack([agents[b].transform for b in keep])
-        with ctx.timer.stage("agent_steps"):
-            more = run_agent_batch(
-                c.src_n, c.tgt_n, score_fn, ctx.scorer.table, pose, segments[1], **ctx.loop(score_fn)
-            )
-        for b, part in zip(keep, more, strict=True):
-            extend(agents[b], part)
-        # Only the starts that went on moved: the others keep their coarse-phase score.
-        for b, score in zip(keep, ctx.quick_scores([agents[b] for b in keep]), strict=True):
-            scores[b] = score
-    return agents, scores
+        agents = run_agent_batch(c.src_n, c.tgt_n, score_fn, ctx.scorer.table, starts, segment, **ctx.loop(score_fn))
+    return agents, ctx.quick_scores(agents)
 
 
 def global_match_after(ctx: RegistrationContext) -> int | None:
@@ -280,7 +281,8 @@ def rescue(ctx: RegistrationContext) -> None:
         with ctx.timer.stage("icp"):
             wide = ctx.wide_icp(c.src_unit, c.tgt_unit, np.eye(4), c.resolution)
         ctx.offer(WIDE_ICP, wide.transform)
-    if far_from_confident(ctx, config.rescue_global_starts) and not c.resolution.dense:
+    searched = config.init == "global"  # the global mode's own search began from those starts
+    if far_from_confident(ctx, config.rescue_global_starts) and not c.resolution.dense and not searched:
         offer_from_starts(ctx, batched(), global_starts(ctx), GLOBAL_STARTS, until_confident=True)
     if far_from_confident(ctx, config.rescue_turns) and not c.resolution.dense:
         offer_until_confident(ctx, TURNED_ICP, turned_starts(ctx))
@@ -325,7 +327,7 @@ def offer_from_starts(
     """The agent's coarse phase from ``starts`` (batched), its ``refine_top`` most promising runs offered as ``name``
     (best first; with ``until_confident``, none after a confident one)."""
     coarse = (ctx.schedule[0],) + (0,) * (len(ctx.schedule) - 1)
-    more, scores = from_starts(ctx, score_fn, starts, [coarse])
+    more, scores = from_starts(ctx, score_fn, starts, coarse)
     first = len(ctx.agents)
     ctx.agents.extend(more)
     ctx.starts = np.concatenate([ctx.starts, starts])
@@ -437,9 +439,10 @@ def register(
         score_fn = batch_score_fn(scorer, clouds.tgt_n) if wide_search else scorer.score_fn(clouds.tgt_n)
     ctx.scorers.append(score_fn)
     if wide_search:
-        # 3. The wide search: the agent from every global start, and the global match beside it.
+        # 3. The wide search: the agent from every global start, and the global match beside it unless a start
+        # is sure.
         agent_from_global_starts(ctx, score_fn)
-        if ctx.global_match is not None:
+        if ctx.global_match is not None and not ctx.sure:
             with timer.stage("global_match"):
                 global_match(ctx)
     else:
@@ -456,7 +459,7 @@ def register(
         if not ctx.confident:
             agent_from_input_pose(ctx, score_fn)
     # 6. The rescues of a still unconfident result.
-    if icp is not None and not wide_search and not ctx.confident:
+    if icp is not None and not ctx.confident:
         with timer.stage("rescue"):
             rescue(ctx)
     # 7. The winner's polish.

@@ -128,7 +128,7 @@ class RegistrationConfig:
 
     ``icp_stages``: the refinement, one Open3D ICP pass per ``(method, window in spacings)`` from the previous
     result; ``()`` = no ICP (PRANet-v1). ``global_match``: with ICP, a classical global candidate (features and a
-    robust solver) when the agent is not confident, and always with ``init="global"``. With ICP:
+    robust solver) when the agent is not ``sure``, in both modes. With ICP:
     ``exit_checks`` refine after those cumulative agent steps and stop once the
     result is confident (identity mode; with ``global_match``, it runs after the last check of the coarse phase
     unless a check before was ``sure``); ``rescue_window`` (or ``None``) runs a wide ICP from the input pose when
@@ -139,7 +139,9 @@ class RegistrationConfig:
     its ``refine_top`` most confident refined (sparse clouds), then, under ``rescue_turns`` times the threshold
     (``None``: never), ICP from the best estimate turned by each of ``TURNS - 1`` well-spread rotations, then by
     ``CENTRED_TURNS - 1`` with the source centroid put on the target's (sparse clouds). ``init="global"``
-    starts the agent from ``n_starts`` rotations and refines the ``refine_top`` most confident. ``schedule``: steps
+    starts the agent from ``n_starts`` rotations and refines the ``refine_top`` most confident; with an exit check in
+    the coarse phase, the most confident start is refined first at its end and a ``sure`` one ends the request; an
+    unconfident result gets the rescues (all but the global starts, which the mode has run). ``schedule``: steps
     per step-size scale (``None`` = the model's).
     ``walk_steps``: 0 = the paper's protocol, a network call per step; ``k > 0`` = walk up to ``k`` steps toward
     one estimated pose in closed form before asking the network again (``core.agent``; models with the analytic

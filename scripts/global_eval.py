@@ -6,7 +6,9 @@ pair_rng(seed, setting, i), max_angle_deg=180)`` (isotropic rotations up to 180Â
 
 - ``pranet-global``: ``Engine.register`` with ``PAPER_V2`` and ``init="global"``: the agent from ``--starts`` start
   rotations (one batched model call per step), the ``--refine-top`` most confident refined by ICP;
-- ``starts-icp``: the same without the agent (0 steps): ICP from the most confident starts, to show
+- ``service-global``: the service's default request with ``"init": "global"`` (``SERVICE_DEFAULT``: the walk, exit
+  checks, the global match and the rescues, on the service's points per cloud), from the same starts;
+- ``starts-icp``: PRANet-global without the agent (0 steps): ICP from the most confident starts, to show
   what the agent adds;
 - ``pranet-v2``: the paper's PRANet-v2 from the identity (trained for rotations up to 60Â°);
 - ``ransac``, ``fgr``: RANSAC / FGR on FPFH features, refined by ICP (``training.baselines``).
@@ -30,19 +32,26 @@ from typing import Any
 
 import numpy as np
 
-ALL = ("pranet-global", "starts-icp", "pranet-v2", "ransac", "fgr")
+ALL = ("pranet-global", "service-global", "starts-icp", "pranet-v2", "ransac", "fgr")
 
 
-def global_runner(engine: Any, name: str, n_starts: int, refine_top: int, schedule: tuple[int, ...] | None) -> Any:
-    """A ``training.evaluate.Runner`` for the service's ``"init": "global"`` (PRANet-v2 from ``n_starts`` starts)."""
-    from pranet.core.registration_config import PAPER_V2
+def global_runner(
+    engine: Any, name: str, n_starts: int, refine_top: int, schedule: tuple[int, ...] | None, service: bool = False
+) -> Any:
+    """A ``training.evaluate.Runner`` for ``"init": "global"``: PRANet-v2 from ``n_starts`` starts, or with
+    ``service`` the service's default request with ``"init": "global"`` (its walk, exit checks and rescues on its
+    own points per cloud)."""
+    from pranet.core.registration_config import PAPER_V2, SERVICE_DEFAULT
     from pranet.training.evaluate import MethodOutput, Runner
 
-    # The model's own N, not the paper's 1024: a batch of n_starts sources each step, each call about 11x the cost
-    # at 1024 points.
-    config = PAPER_V2.with_(
-        init="global", n_starts=n_starts, refine_top=refine_top, schedule=schedule, agent_points=None
-    )
+    if service:
+        config = SERVICE_DEFAULT.with_(init="global", n_starts=n_starts, refine_top=refine_top)
+    else:
+        # The model's own N, not the paper's 1024: a batch of n_starts sources each step, each call about 11x the
+        # cost at 1024 points.
+        config = PAPER_V2.with_(
+            init="global", n_starts=n_starts, refine_top=refine_top, schedule=schedule, agent_points=None
+        )
 
     def run(pair: Any, rng: np.random.Generator) -> dict[str, MethodOutput]:
         reg = engine.register(pair.source, pair.target, config, rng)
@@ -119,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     runners = []
     if "pranet-global" in methods:
         runners.append(global_runner(engine, "pranet-global", args.starts, args.refine_top, None))
+    if "service-global" in methods:
+        runners.append(global_runner(engine, "service-global", args.starts, args.refine_top, None, service=True))
     if "starts-icp" in methods:
         runners.append(global_runner(engine, "starts-icp", args.starts, args.refine_top, (0,) * n_scales))
     if "pranet-v2" in methods:

@@ -150,13 +150,14 @@ class RegisterRequest(_Strict):
         description="with icp: when the result is still 'suspect', try the coarse phase again from six starts 30° "
         "around the best estimate, on sparse clouds ICP from the best estimate shifted along each axis, a "
         "wide-window ICP from the input pose, and last, on sparse clouds whose best result is still far from "
-        "'converged', the agent from the global mode's `starts` rotations; the most confident result is kept",
+        "'converged', the agent from the global mode's `starts` rotations (not again with init='global'); the most "
+        "confident result is kept",
     )
     global_match: bool = Field(
         True,
         description="with icp: when the agent's result is not 'converged' after its coarse phase, try the classical "
         "global match (features at the data's resolution and a robust solver, from any initial pose), refined the "
-        "same way; the most confident candidate wins (always tried with init='global')",
+        "same way; the most confident candidate wins (with init='global' too, unless a start is already sure)",
     )
     walk: bool = Field(
         True,
@@ -180,7 +181,8 @@ class RegisterRequest(_Strict):
         "identity",
         description="where the agent starts: 'identity' (the input pose; the model knows rotations up to 60°) or "
         "'global' (from `starts` well-spread rotations at once, for any initial rotation; the most confident "
-        "results are refined by ICP and the best is returned; about `starts` times the agent's work)",
+        "results are refined by ICP and the best is returned; about `starts` times the agent's coarse work; with an "
+        "exit check in the coarse phase, a sure best start at its end returns at once)",
     )
     agent_points: json_int(ge=MIN_AGENT_POINTS, le=MAX_AGENT_POINTS) | None = Field(
         SERVICE_DEFAULT.agent_points,

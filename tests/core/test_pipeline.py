@@ -513,3 +513,57 @@ def test_fine_matching_scores_the_fine_phase_by_the_models_fine_call():
         register(src, tgt, RangeLimitedOracle(src, tgt, T), np.random.default_rng(0), config)
     with pytest.raises(ValueError, match="walk"):
         RegistrationConfig(fine_matching=True, walk_steps=10)
+
+
+def test_the_global_mode_ends_at_its_coarse_exit_check_when_the_best_start_is_sure():
+    """Global mode with ICP and an exit check in the coarse phase: the most confident start is refined and scored
+    after the coarse phase; sure, it ends the request (no fine phase from the best three, no global match). Without
+    that check the fine phase runs from the best three, and a sure result there still spares the global match. An
+    ICP that reaches only 1° cannot finish the coarse-phase estimate (6° off here, scored 0.93): under a bar of
+    0.95 it is not sure at the check, the fine phase runs, and its result is sure in the end."""
+    src, tgt, T = rotated_problem(150.0)
+    truth = unit_truth(src, tgt, T)
+    base = RegistrationConfig(init="global", icp_stages=(("point_to_plane", 2.0),), global_match=True)
+    for exit_checks, reach, bar, ends_early in (
+        ((10, 20, 40), 12.0, 0.55, True),
+        ((40,), 12.0, 0.55, False),
+        ((10, 20, 40), 1.0, 0.95, False),
+    ):
+        oracle = BatchedRangeLimitedOracle(src, tgt, T)
+        asked = []
+
+        def candidates(s, t, res, seed, viewpoint, asked=asked):
+            asked.append(True)
+            yield from ()
+
+        reg = register(
+            src,
+            tgt,
+            oracle,
+            np.random.default_rng(0),
+            base.with_(exit_checks=exit_checks, exit_confidence=bar),
+            icp=snapping_icp(truth, reach),
+            global_match_fn=candidates,
+        )
+        assert isotropic_errors(reg.T_target_source, T)[0] < 1e-4 and reg.confidence.status == "converged"
+        if ends_early:
+            assert oracle.batch_calls == [24] * 20 and asked == []
+            assert [step for step, _ in reg.checks] == [20] and len(reg.trajectory) == 20
+        else:
+            assert oracle.batch_calls == [24] * 20 + [3] * 40
+        assert asked == []
+
+
+def test_an_unconfident_global_mode_result_gets_the_rescues_but_not_its_own_starts_again():
+    """No start is within the stand-in's reach (5°), so the global mode's best is suspect: the rescues run as they
+    do from the input pose (here the wide ICP, which reaches the truth), except the agent from the global starts,
+    which the global mode has just run (no second coarse phase of 24)."""
+    src, tgt, T = rotated_problem(150.0)
+    truth = unit_truth(src, tgt, T)
+    config = RegistrationConfig(init="global", rescue_global_starts=1.0)
+    wide = lambda s, t, init, res: snapping_icp(truth, 180.0)(s, t, init)  # noqa: E731
+    oracle = BatchedRangeLimitedOracle(src, tgt, T, reach_deg=5.0)
+    reg = register(src, tgt, oracle, np.random.default_rng(0), config, icp=snapping_icp(truth, 10.0), rescue_icp=wide)
+    assert reg.rescued == "wide_icp" and reg.confidence.status == "converged"
+    assert isotropic_errors(reg.T_target_source, T)[0] < 1e-4
+    assert oracle.batch_calls == [24] * 20 + [3] * 40
