@@ -1,12 +1,14 @@
-"""Where a ``score.onnx`` call's time goes, by ONNX op, from an onnxruntime profile (1 thread, 20 calls), after the
-median wall time of 40 unprofiled calls and the node count onnxruntime runs.
+"""Where a ``score.onnx`` (or ``--graph score_fine.onnx``) call's time goes, by ONNX op, from an onnxruntime
+profile (1 thread, 20 calls), after the median wall time of 40 unprofiled calls and the node count onnxruntime runs.
 
     python experiments/profile_score.py model/default --points 128
+    python experiments/profile_score.py model/default --points 1024 --graph score_fine.onnx
 
 Backs docs/DESIGN.md, "Global mode with the 2.0.0 network" (23 -> 13 ms per call: run it on an export of
 ``runs/agent/best.pt`` made with ``model/network.py`` of commit 4aabdec^ and of 4aabdec; the time moves
 with the machine's load) and "Fewer nodes in the network call" (an export of ``runs/agent-2.1/best.pt`` made with
-``model/matching.py`` of commit 7a85cd4^ and of 7a85cd4).
+``model/matching.py`` of commit 7a85cd4^ and of 7a85cd4) and "Subnormal exponents" (the shipped model of
+commit 45f5edf against 2.2.1: ``Exp``'s share).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("model_dir", nargs="?", default="model/default")
     p.add_argument("--points", type=int, default=256, help="points per cloud (the service's agent sees 128)")
+    p.add_argument("--graph", default="score.onnx", choices=("score.onnx", "score_fine.onnx"))
     args = p.parse_args()
     embed = ort.InferenceSession(f"{args.model_dir}/embed.onnx", providers=["CPUExecutionProvider"])
     rng = np.random.default_rng(0)
@@ -44,7 +47,7 @@ def main() -> None:
         options = ort.SessionOptions()
         options.enable_profiling = profiled
         options.intra_op_num_threads = 1
-        score = ort.InferenceSession(f"{args.model_dir}/score.onnx", options, providers=["CPUExecutionProvider"])
+        score = ort.InferenceSession(f"{args.model_dir}/{args.graph}", options, providers=["CPUExecutionProvider"])
         inputs = {i.name: feeds[i.name] for i in score.get_inputs()}
         calls = 20 if profiled else 40
         for _ in range(0 if profiled else 5):
