@@ -11,6 +11,7 @@ pair_rng(seed, setting, i), max_angle_deg=180)`` (isotropic rotations up to 180�
 - ``starts-icp``: PRANet-global without the agent (0 steps): ICP from the most confident starts, to show
   what the agent adds;
 - ``pranet-v2``: the paper's PRANet-v2 from the identity (trained for rotations up to 60°);
+- ``pranet-adaptive``: the service's default request from the identity (its global match reaches any rotation);
 - ``ransac``, ``fgr``: RANSAC / FGR on FPFH features, refined by ICP (``training.baselines``).
 
 Printed per method: success (RPMNet's: rotation < 1° and translation < 0.01), the share within 5°,
@@ -32,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-ALL = ("pranet-global", "service-global", "starts-icp", "pranet-v2", "ransac", "fgr")
+ALL = ("pranet-global", "service-global", "starts-icp", "pranet-v2", "pranet-adaptive", "ransac", "fgr")
 
 
 def global_runner(
@@ -134,6 +135,8 @@ def main(argv: list[str] | None = None) -> int:
         runners.append(global_runner(engine, "starts-icp", args.starts, args.refine_top, (0,) * n_scales))
     if "pranet-v2" in methods:
         runners.append(pranet_runner(engine, ("pranet-v2",)))
+    if "pranet-adaptive" in methods:
+        runners.append(pranet_runner(engine, ("pranet-adaptive",)))
     if "ransac" in methods:
         runners.append(baseline_runner("ransac", baselines.ransac_icp))
     if "fgr" in methods:
