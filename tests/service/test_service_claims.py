@@ -76,11 +76,15 @@ def test_a_queued_request_waits_its_turn_or_gets_504_once_its_time_is_up(tmp_pat
             assert first.result().status_code == 200
             assert [f.result().status_code for f in queued] == [200, 200]
             # Measured here, on this machine under its present load: the long request's round trip, and its
-            # uninterruptible work (everything after the decode).
-            started = time.monotonic()
-            alone = client.post("/register", json=long_icp)
-            round_trip = time.monotonic() - started
-            work = (alone.json()["timing_ms"]["total"] - alone.json()["timing_ms"]["decode"]) / 1e3
+            # uninterruptible work (everything after the decode), each the faster of two runs: a run slowed by a
+            # load that has gone by (b) would set the limit late enough for the queued request to be served.
+            round_trips, works = [], []
+            for _ in range(2):
+                started = time.monotonic()
+                alone = client.post("/register", json=long_icp)
+                round_trips.append(time.monotonic() - started)
+                works.append((alone.json()["timing_ms"]["total"] - alone.json()["timing_ms"]["decode"]) / 1e3)
+            round_trip, work = min(round_trips), min(works)
     finally:
         server.stop()
     # (b) The time limit sits half the work after the long request's own start check (its upload and decode take
