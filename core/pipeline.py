@@ -177,24 +177,36 @@ def agent_from_global_starts(ctx: RegistrationContext, score_fn: BatchScoreFn) -
     With ICP and an exit check at or before the coarse phase's end, the most confident start is refined and scored
     there first, and a ``sure`` result (``RegistrationContext.sure``) ends the search: ICP finishes what the fine
     phase would have polished, and the other starts and the global match could only tie with it."""
-    config = ctx.config
     ctx.starts = global_starts(ctx)
     coarse, *fine = split_schedule(ctx.schedule, (ctx.schedule[0],))
     ctx.agents, ctx.start_scores = from_starts(ctx, score_fn, ctx.starts, coarse)
-    if ctx.icp is not None and any(0 < c <= ctx.schedule[0] for c in config.exit_checks):
-        b = _top(ctx.start_scores, 1)[0]
-        checked = ctx.offer(AGENT, ctx.agents[b].transform, agent_index=b)
-        ctx.checks.append((len(ctx.agents[b].steps), checked.confidence.score))
-        if ctx.sure:
-            return
+    if coarse_exit_check_is_sure(ctx):
+        return
     if fine:
-        keep = _top(ctx.start_scores, config.refine_top)
-        more, scores = from_starts(ctx, score_fn, np.stack([ctx.agents[b].transform for b in keep]), fine[0])
-        for b, part, score in zip(keep, more, scores, strict=True):
-            extend(ctx.agents[b], part)
-            ctx.start_scores[b] = score  # only the starts that went on moved: the others keep their coarse score
-    for b in _top(ctx.start_scores, config.refine_top if ctx.icp is not None else 1):
+        fine_phase_from_the_best_starts(ctx, score_fn, fine[0])
+    for b in _top(ctx.start_scores, ctx.config.refine_top if ctx.icp is not None else 1):
         ctx.offer(AGENT, ctx.agents[b].transform, agent_index=b)
+
+
+def coarse_exit_check_is_sure(ctx: RegistrationContext) -> bool:
+    """Global mode, with ICP and an exit check at or before the coarse phase's end: the most confident start refined
+    and scored (recorded in ``ctx.checks``); whether the result is ``sure``."""
+    if ctx.icp is None or not any(0 < c <= ctx.schedule[0] for c in ctx.config.exit_checks):
+        return False
+    b = _top(ctx.start_scores, 1)[0]
+    checked = ctx.offer(AGENT, ctx.agents[b].transform, agent_index=b)
+    ctx.checks.append((len(ctx.agents[b].steps), checked.confidence.score))
+    return ctx.sure
+
+
+def fine_phase_from_the_best_starts(ctx: RegistrationContext, score_fn: BatchScoreFn, segment: tuple[int, ...]) -> None:
+    """The ``refine_top`` most confident starts on through ``segment`` (batched), their runs and scores updated; the
+    other starts keep their coarse-phase result and score."""
+    keep = _top(ctx.start_scores, ctx.config.refine_top)
+    more, scores = from_starts(ctx, score_fn, np.stack([ctx.agents[b].transform for b in keep]), segment)
+    for b, part, score in zip(keep, more, scores, strict=True):
+        extend(ctx.agents[b], part)
+        ctx.start_scores[b] = score
 
 
 def global_starts(ctx: RegistrationContext) -> Array:

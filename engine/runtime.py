@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -95,24 +96,6 @@ def quantized_graphs(card: dict[str, Any], precision: str = "fp32") -> tuple[str
         + ((head_file(precision),) if HEAD_GRAPH in files else ())
         + ((fine_file(precision),) if FINE_GRAPH in files else ())
     )
-
-
-def same_shape_rows(centred: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
-    """For each row of ``centred: (B, N, 3)`` (source points about their centroid), the row of ``previous: (B', N,
-    3)`` it equals to ``SAME_SHAPE_ATOL`` (only translated since), or -1."""
-    if previous is None:
-        return np.full(len(centred), -1)
-    d = np.abs(centred[:, None] - previous[None]).max(axis=(2, 3))  # (B, B')
-    best = d.argmin(axis=1)
-    return np.where(d[np.arange(len(centred)), best] <= SAME_SHAPE_ATOL, best, -1)
-
-
-def scatter(b: int, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """One ``(b, ...)`` array from ``(row indices, values)`` parts that cover its rows between them."""
-    out = np.empty((b, *parts[0][1].shape[1:]), dtype=parts[0][1].dtype)
-    for rows, values in parts:
-        out[rows] = values
-    return out
 
 
 class ModelLoadError(RuntimeError):
@@ -293,112 +276,9 @@ class RewardModel:
         return score
 
     def batch_score_fn(self, target: npt.ArrayLike) -> BatchScoreFn:
-        """A ``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` for one registration onto ``target: (M, 3)``.
-
-        The target is embedded once and tiled over ``B``; the rows are one source point set in ``B``
-        poses (the global mode's starts), so the kNN graph of the first row serves every row. A row whose
-        centred points match a row of the previous call (only translated since) is re-scored by the head
-        graph; the others go through ``score.onnx`` together. Counts in ``score.calls`` (rows).
-        ``score.fine`` (``None`` without ``score_fine.onnx``) is the fine phase's scorer on the same target
-        embedding: its pair features change with a translation, so a row goes through ``score_fine.onnx`` (counted in
-        ``calls["fine"]``) unless it is only translated since the previous fine call and the model has
-        ``match_fine.onnx``: then that graph re-runs the matching rounds alone from the cached similarity (counted in
-        ``calls["match"]``).
-        """
-        t_pts = np.asarray(target, dtype=np.float32)[None]  # (1, M, 3)
-        t_feat, t_cen, _ = self.embed(t_pts)
-        tiled: dict[int, tuple[np.ndarray, ...]] = {}  # B -> (knn, target points, features, centroid) tiled
-        head = self._head if self.reuse_translations else None
-        match_graph = self._match if self.reuse_translations else None
-        cache: dict[str, np.ndarray] = {}  # "centred": (B', N, 3) and "pair": (B', P) of the previous call
-        fine_cache: dict[str, np.ndarray] = {}  # "centred", "similarity", "match_params" of the previous fine call
-        calls = {"full": 0, "head": 0, "fine": 0, "match": 0}
-
-        def tiles(pts: np.ndarray) -> tuple[np.ndarray, ...]:
-            b = len(pts)
-            if b not in tiled:
-                knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.k)  # (1, N, k)
-                tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, t_pts, t_feat, t_cen))
-            return tiled[b]
-
-        def run(pts: np.ndarray, names: list[str], fine: bool = False) -> list[np.ndarray]:
-            knn, tp, tf, tc = tiles(pts)
-            feeds = {"points": pts, "knn": knn, "target_points": tp, "target_features": tf, "target_centroid": tc}
-            calls["fine" if fine else "full"] += len(pts)
-            session = self._fine if fine else self._score
-            return session.run(names, {name: feeds[name] for name in self._score_inputs})
-
-        def full(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            out = run(pts, ["rewards", "pair_features"] if head is not None else ["rewards"])
-            return out[0], (out[1] if head is not None else np.empty((len(pts), 0), np.float32))
-
-        def pose(sources: np.ndarray, _target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            # The analytic layer's input (``RewardNet.residual_pose``): y ≈ R x + r in centred coordinates, so the
-            # source centroid must move by r - (source centroid - target centroid).
-            pts = np.ascontiguousarray(sources, dtype=np.float32)
-            pair = run(pts, ["pair_features"])[0].astype(np.float64)  # (B, 12)
-            offset = pts.mean(axis=1, dtype=np.float64) - t_cen.astype(np.float64)
-            return pair[:, :9].reshape(-1, 3, 3), pair[:, 9:12] - offset
-
-        def score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
-            pts = np.ascontiguousarray(sources, dtype=np.float32)  # (B, N, 3)
-            if head is None:
-                return full(pts)[0]
-            centroids = pts.mean(axis=1, keepdims=True)  # (B, 1, 3)
-            centred = pts - centroids
-            match = same_shape_rows(centred, cache.get("centred"))
-            rewards = np.empty((len(pts), len(self.table)), dtype=np.float32)
-            pair = np.empty((len(pts), 0), dtype=np.float32)
-            new = np.flatnonzero(match < 0)
-            if len(new):
-                r_new, p_new = full(pts[new])
-                rewards[new] = r_new
-                pair = np.empty((len(pts), p_new.shape[1]), dtype=np.float32)
-                pair[new] = p_new
-            old = np.flatnonzero(match >= 0)
-            if len(old):
-                cached = cache["pair"][match[old]]
-                pair = pair if pair.shape[1] else np.empty((len(pts), cached.shape[1]), dtype=np.float32)
-                pair[old] = cached
-                offsets = centroids[old, 0] - t_cen
-                rewards[old] = head.run(None, {"pair_features": cached, "offset": offsets})[0]
-                calls["head"] += len(old)
-            cache["centred"], cache["pair"] = centred, pair
-            return rewards
-
-        def fine_score(sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
-            pts = np.ascontiguousarray(sources, dtype=np.float32)
-            if match_graph is None:
-                return run(pts, ["rewards"], fine=True)[0]
-            centred = pts - pts.mean(axis=1, keepdims=True)
-            match = same_shape_rows(centred, fine_cache.get("centred"))
-            new, old = np.flatnonzero(match < 0), np.flatnonzero(match >= 0)
-            parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {
-                "rewards": [],
-                "similarity": [],
-                "match_params": [],
-            }
-            if len(new):
-                out = run(pts[new], list(parts), fine=True)
-                for name, values in zip(parts, out, strict=True):
-                    parts[name].append((new, values))
-            if len(old):
-                # Only translated since the last fine call: the same similarity and (β, γ, α), a new placement.
-                kept = {name: fine_cache[name][match[old]] for name in ("similarity", "match_params")}
-                _, tp, _, tc = tiles(pts[old])
-                feeds = {"points": pts[old], "target_points": tp, "target_centroid": tc, **kept}
-                parts["rewards"].append((old, match_graph.run(["rewards"], feeds)[0]))
-                for name, values in kept.items():
-                    parts[name].append((old, values))
-                calls["match"] += len(old)
-            rows = {name: scatter(len(pts), found) for name, found in parts.items()}
-            fine_cache.update(centred=centred, similarity=rows["similarity"], match_params=rows["match_params"])
-            return rows["rewards"]
-
-        score.calls = calls  # type: ignore[attr-defined]
-        score.pose = pose if self.analytic else None  # type: ignore[attr-defined]
-        score.fine = fine_score if self._fine is not None else None  # type: ignore[attr-defined]
-        return score
+        """A ``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` for one registration onto ``target: (M, 3)``
+        (``BatchScorer``). Counts in ``score.calls`` (rows); ``score.pose`` and ``score.fine`` as there."""
+        return BatchScorer(self, target)
 
     @property
     def has_fine_call(self) -> bool:
@@ -457,3 +337,141 @@ def session_options(
     opts.enable_mem_pattern = mem_pattern
     opts.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
     return opts
+
+
+def same_shape_rows(centred: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+    """For each row of ``centred: (B, N, 3)`` (source points about their centroid), the row of ``previous: (B', N,
+    3)`` it equals to ``SAME_SHAPE_ATOL`` (only translated since), or -1."""
+    if previous is None:
+        return np.full(len(centred), -1)
+    d = np.abs(centred[:, None] - previous[None]).max(axis=(2, 3))  # (B, B')
+    best = d.argmin(axis=1)
+    return np.where(d[np.arange(len(centred)), best] <= SAME_SHAPE_ATOL, best, -1)
+
+
+def scatter(b: int, parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """One ``(b, ...)`` array from ``(row indices, values)`` parts that cover its rows between them."""
+    out = np.empty((b, *parts[0][1].shape[1:]), dtype=parts[0][1].dtype)
+    for rows, values in parts:
+        out[rows] = values
+    return out
+
+
+class TranslationReuse:
+    """One graph's per-row outputs of its previous call, with the centred source points they came from: a row whose
+    centred points equal one of those (only translated since, ``same_shape_rows``) is re-scored from its row's
+    outputs by a cheaper graph instead of the full one."""
+
+    def __init__(self) -> None:
+        self.centred: np.ndarray | None = None  # (B', N, 3)
+        self.kept: dict[str, np.ndarray] = {}  # name -> (B', ...)
+
+    def rewards(
+        self,
+        pts: np.ndarray,
+        full: Callable[[np.ndarray], dict[str, np.ndarray]],
+        partial: Callable[[np.ndarray, np.ndarray, dict[str, np.ndarray]], np.ndarray],
+    ) -> np.ndarray:
+        """``(B, A)`` rewards of ``pts: (B, N, 3)``. ``full(rows)``: the full graph on those rows -> ``"rewards"`` and
+        every output to keep; ``partial(rows, centroids (R, 3), kept)``: the cheaper graph's rewards of translated
+        rows from their kept outputs."""
+        centroids = pts.mean(axis=1, keepdims=True)  # (B, 1, 3)
+        centred = pts - centroids
+        match = same_shape_rows(centred, self.centred)
+        new, old = np.flatnonzero(match < 0), np.flatnonzero(match >= 0)
+        parts: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+        if len(new):
+            for name, values in full(new).items():
+                parts.setdefault(name, []).append((new, values))
+        if len(old):
+            kept = {name: values[match[old]] for name, values in self.kept.items()}
+            parts.setdefault("rewards", []).append((old, partial(old, centroids[old, 0], kept)))
+            for name, values in kept.items():
+                parts.setdefault(name, []).append((old, values))
+        rows = {name: scatter(len(pts), found) for name, found in parts.items()}
+        self.centred = centred
+        self.kept = {name: values for name, values in rows.items() if name != "rewards"}
+        return rows["rewards"]
+
+
+class BatchScorer:
+    """``RewardModel.batch_score_fn``: the scorer of one registration onto ``target: (M, 3)``.
+
+    The target is embedded once and tiled over ``B``; the rows are one source point set in ``B`` poses (the global
+    mode's starts), so the kNN graph of the first row serves every row. Called, it scores through ``score.onnx``,
+    except a row only translated since the previous call, which ``head.onnx`` re-scores from that call's pair
+    features. ``fine`` (``None`` without ``score_fine.onnx``) is the fine phase's scorer on the same target
+    embedding: its pair features change with a translation, so a row goes through ``score_fine.onnx`` unless it is
+    only translated since the previous fine call and the model has ``match_fine.onnx``, which re-runs the matching
+    rounds alone from that call's similarity and parameters. ``pose`` (analytic models, else ``None``): the
+    estimated residual pose of each row. ``calls`` counts the rows each graph scored: ``full``, ``head``, ``fine``
+    and ``match``.
+    """
+
+    def __init__(self, model: RewardModel, target: npt.ArrayLike) -> None:
+        self.model = model
+        self.t_pts = np.asarray(target, dtype=np.float32)[None]  # (1, M, 3)
+        self.t_feat, self.t_cen, _ = model.embed(self.t_pts)
+        self._tiled: dict[int, tuple[np.ndarray, ...]] = {}  # B -> (knn, target points, features, centroid) tiled
+        self._head = model._head if model.reuse_translations else None
+        self._match = model._match if model.reuse_translations else None
+        self._after_full, self._after_fine = TranslationReuse(), TranslationReuse()
+        self.calls = {"full": 0, "head": 0, "fine": 0, "match": 0}
+        self.pose = self._pose if model.analytic else None
+        self.fine = self._fine_score if model._fine is not None else None
+
+    def __call__(self, sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
+        pts = np.ascontiguousarray(sources, dtype=np.float32)  # (B, N, 3)
+        if self._head is None:
+            return self._run(pts, ["rewards"])[0]
+        return self._after_full.rewards(pts, lambda rows: self._full(pts[rows]), self._head_rewards)
+
+    def _full(self, pts: np.ndarray) -> dict[str, np.ndarray]:
+        rewards, pair = self._run(pts, ["rewards", "pair_features"])
+        return {"rewards": rewards, "pair": pair}
+
+    def _head_rewards(self, rows: np.ndarray, centroids: np.ndarray, kept: dict[str, np.ndarray]) -> np.ndarray:
+        self.calls["head"] += len(rows)
+        return self._head.run(None, {"pair_features": kept["pair"], "offset": centroids - self.t_cen})[0]
+
+    def _fine_score(self, sources: np.ndarray, _target: np.ndarray) -> np.ndarray:
+        pts = np.ascontiguousarray(sources, dtype=np.float32)
+        if self._match is None:
+            return self._run(pts, ["rewards"], fine=True)[0]
+
+        def full(rows: np.ndarray) -> dict[str, np.ndarray]:
+            names = ["rewards", "similarity", "match_params"]
+            return dict(zip(names, self._run(pts[rows], names, fine=True), strict=True))
+
+        def translated(rows: np.ndarray, _centroids: np.ndarray, kept: dict[str, np.ndarray]) -> np.ndarray:
+            # Only translated since the last fine call: the same similarity and (β, γ, α), a new placement.
+            _, tp, _, tc = self._tiles(len(rows), pts)
+            self.calls["match"] += len(rows)
+            feeds = {"points": pts[rows], "target_points": tp, "target_centroid": tc, **kept}
+            return self._match.run(["rewards"], feeds)[0]
+
+        return self._after_fine.rewards(pts, full, translated)
+
+    def _pose(self, sources: np.ndarray, _target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # The analytic layer's input (``RewardNet.residual_pose``): y ≈ R x + r in centred coordinates, so the source
+        # centroid must move by r - (source centroid - target centroid).
+        pts = np.ascontiguousarray(sources, dtype=np.float32)
+        pair = self._run(pts, ["pair_features"])[0].astype(np.float64)  # (B, 12)
+        offset = pts.mean(axis=1, dtype=np.float64) - self.t_cen.astype(np.float64)
+        return pair[:, :9].reshape(-1, 3, 3), pair[:, 9:12] - offset
+
+    def _tiles(self, b: int, pts: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The source kNN graph (of ``pts``' first row, the first time) and the target's inputs, tiled to ``b``."""
+        if b not in self._tiled:
+            tiled = self._tiled
+            knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.model.k)  # (1, N, k)
+            tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, self.t_pts, self.t_feat, self.t_cen))
+        return self._tiled[b]
+
+    def _run(self, pts: np.ndarray, names: list[str], fine: bool = False) -> list[np.ndarray]:
+        """``score.onnx`` (or ``score_fine.onnx``) on the rows ``pts``, counted."""
+        knn, tp, tf, tc = self._tiles(len(pts), pts)
+        feeds = {"points": pts, "knn": knn, "target_points": tp, "target_features": tf, "target_centroid": tc}
+        self.calls["fine" if fine else "full"] += len(pts)
+        session = self.model._fine if fine else self.model._score
+        return session.run(names, {name: feeds[name] for name in self.model._score_inputs})

@@ -73,14 +73,11 @@ def _set_metadata(path: Path, meta: dict[str, str]) -> None:
 def export_model(
     net: RewardNet, out: Path, card: dict[str, Any], fine_rounds: tuple[MatchingRound, ...] = FINE_ROUNDS
 ) -> dict[str, Any]:
-    """Write ``embed.onnx``, ``score.onnx``, ``head.onnx``, ``score_fine.onnx`` (when ``has_fine_call``) and
-    ``card.json`` into ``out``; returns the card. ``fine_rounds``: the fine graph's matching rounds."""
+    """Write ``embed.onnx``, ``score.onnx``, ``head.onnx``, the fine phase's graphs (``export_fine_graphs``) and
+    ``card.json`` into ``out``; returns the card. ``fine_rounds``: the fine graphs' matching rounds."""
     out.mkdir(parents=True, exist_ok=True)
-    for stale in [
-        *out.glob("*.int8.onnx"),
-        out / FINE_GRAPH,
-        out / FINE_MATCH_GRAPH,
-    ]:  # made from the previous graphs, if any
+    # Made from the previous graphs, if any.
+    for stale in [*out.glob("*.int8.onnx"), out / FINE_GRAPH, out / FINE_MATCH_GRAPH]:
         stale.unlink(missing_ok=True)
     cfg = net.cfg
     N, k = cfg.n_points, cfg.k
