@@ -14,6 +14,9 @@ from pranet.model.config import CPU_NET, PAPER_NET, NetConfig
 class SamplingConfig:
     """Training states. ``full`` components are ``(max_angle_deg, max_translation, weight)``.
 
+    ``visited``, when above 0, is the fraction of batches moved first by the current network's own greedy coarse
+    steps (``training.visited``): the states the policy reaches, labelled with the truth.
+
     ``near_settings``, when given, replaces ``settings`` for the states drawn from a component of at most
     ``near_max_deg``: a setting can be weighted where the agent finishes without starving the far-off states
     of the others (docs/DESIGN.md, "A 1:1:1 finish, and the partial weight near the truth only").
@@ -29,6 +32,10 @@ class SamplingConfig:
     small: tuple[float, float] = (10.0, 0.5 / 7)
     orientation_max_deg: float = 0.0
     reward: str = "se3"  # "se3" | "l2" | "mcd"
+    # On-policy states (training.visited): this fraction of the batches is moved by 1..visited_steps greedy coarse
+    # steps of the network being trained before its loss is taken.
+    visited: float = 0.0
+    visited_steps: int = 20
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from pranet.model.network import RewardNet
 from pranet.training.config import PRESETS, TrainConfig, parse_override
 from pranet.training.data import Splits, data_dir, load_modelnet40, split_train_val
 from pranet.training.samples import StateDistribution, curriculum_states, training_state
+from pranet.training.visited import visit, visit_steps
 
 
 def _setting_weights(settings: Sequence[tuple[str, float]]) -> tuple[tuple[str, ...], np.ndarray]:
@@ -361,8 +362,14 @@ def train_epoch(run: Run, epoch: int, train_shapes: np.ndarray, args: argparse.N
         from tqdm import tqdm
 
         it = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.optim.epochs}", leave=False, file=sys.stdout)
+    if s.visited and s.reward != "se3":
+        raise ValueError("visited states are labelled by the se3 rewards; set sampling.reward to se3")
+    visits = np.random.default_rng([cfg.seed, epoch, run.rank, 1])
     running, n = 0.0, 0
     for batch in it:
+        steps = visit_steps(visits, s.visited, s.visited_steps)
+        if steps:
+            batch = visit(run.net, batch, run.table, steps)
         loss, _ = batch_loss(run.model, batch, cfg)
         size = len(batch[0])
         run.opt.zero_grad(set_to_none=True)
