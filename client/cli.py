@@ -139,10 +139,11 @@ def _registration_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--fine-matching",
         dest="fine_matching",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
         default=None,
         help="with --paper-steps: the fine steps' own network call, matching the clouds where the agent has put "
-        "them (nearer the truth on partial overlap)",
+        "them (nearer the truth on partial overlap; the server's default where the model has it); "
+        "--no-fine-matching: the trained call in both phases",
     )
     parser.add_argument(
         "--no-polish",

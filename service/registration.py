@@ -134,7 +134,8 @@ def request_config(
     candidate, ``walk: false`` the walk (a network call per step, as the paper), ``polish: false`` the polish,
     ``robust_icp: false`` the ICP's kernel on sparse clouds, ``agent_points: null`` the agent's points (the model's
     own then). ``fine_matching: true`` (with ``walk: false``; ``fine_call``: the model has ``score_fine.onnx``) the
-    fine phase's own network call.
+    fine phase's own network call; ``null`` that call where the model has it and the walk is off (as ``PAPER_V1`` and
+    ``PAPER_V2`` in process), ``false`` the trained call in both phases.
     """
     if req.steps is not None and len(req.steps) != n_scales:
         raise RequestError(422, f"steps: the model has {n_scales} step-size scales, so steps needs {n_scales} counts")

@@ -164,11 +164,12 @@ class RegisterRequest(_Strict):
         description="let the agent take several steps toward one estimated pose between network calls (a few calls "
         "per registration); false: the paper's protocol, a network call per step",
     )
-    fine_matching: bool = Field(
-        False,
+    fine_matching: bool | None = Field(
+        None,
         description="with walk=false: the fine phase's network calls match the clouds where the agent has put "
         "them, on the model's position-led matching rounds only (score_fine.onnx); on partial overlap the agent "
-        "alone then stays nearer the truth",
+        "alone then stays nearer the truth. null (default): so where the model has that call and walk is false, "
+        "as the paper's configurations run in process; false: the trained call in both phases",
     )
     polish: bool = Field(
         True,

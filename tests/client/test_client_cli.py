@@ -127,6 +127,8 @@ def test_exit_check_and_rescue_options(fake_service, clouds) -> None:
     assert main([*base, "--paper-steps", "--fine-matching"]) == 0
     sent = fake_service.requests[-1]["json"]
     assert sent["walk"] is False and sent["fine_matching"] is True
+    assert main([*base, "--paper-steps", "--no-fine-matching"]) == 0
+    assert fake_service.requests[-1]["json"]["fine_matching"] is False
 
 
 def test_json_output_is_the_raw_response(fake_service, clouds, capsys) -> None:

@@ -89,11 +89,13 @@ def test_the_walk_needs_a_few_network_calls_where_the_paper_needs_one_per_step(h
 def test_fine_matching_reaches_the_fine_phase_and_only_with_a_call_per_step(http: httpx.Client) -> None:
     """``fine_matching`` (with ``walk: false``): the 20 coarse steps are the paper protocol's, the 40 fine ones are
     scored by the model's fine-phase call, one full call each (its pair features change with a translation, so none
-    is re-scored by the head alone), and they take another path. With the walk it is refused, saying why."""
+    is re-scored by the head alone), and they take another path. Left out, it is the model's fine call, as
+    ``PAPER_V1`` in process; ``false`` is the trained call throughout. With the walk it is refused, saying why."""
     source, target, _ = moved_pair(20.0)
     common = {"source": b64(source), "target": b64(target), "icp": False, "rescue": False, "walk": False}
-    paper, fine = post(http, **common), post(http, **common, fine_matching=True)
+    paper, fine = post(http, **common, fine_matching=False), post(http, **common, fine_matching=True)
     assert actions(fine)[:20] == actions(paper)[:20] and actions(fine)[20:] != actions(paper)[20:]
+    assert actions(post(http, **common)) == actions(fine)
     assert fine["network_calls"] >= 40 + 1 and fine["network_calls"] > paper["network_calls"]
     r = http.post("/register", json={**common, "walk": True, "fine_matching": True})
     assert r.status_code == 422 and "walk" in r.text
@@ -218,7 +220,9 @@ def test_robust_icp_rescue_and_agent_points_map_onto_the_config() -> None:
     assert config(icp=False).rescue_turns is None
     assert default.agent_points == SERVICE_AGENT_POINTS and config(agent_points=None).agent_points is None
     assert config(agent_points=256).agent_points == 256
-    assert config(walk=False, fine_matching=True).fine_matching and not default.fine_matching
+    assert config(walk=False, fine_matching=True).fine_matching and default.fine_matching is None
+    assert config(walk=False).uses_fine_call(True) and not config(walk=False, fine_matching=False).uses_fine_call(True)
+    assert not default.uses_fine_call(True)  # the walk's steps are not network calls
     from pranet.service.registration import RequestError
 
     request = RegisterRequest(source=cloud, target=cloud, walk=False, fine_matching=True)
