@@ -26,6 +26,7 @@ import math
 import os
 import sys
 import time
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -116,6 +117,11 @@ class MethodOutput:
 class Runner:
     methods: tuple[str, ...]
     fn: Callable[[Pair, np.random.Generator], dict[str, MethodOutput]]
+
+
+def runner_key(runner: Runner) -> int:
+    """The seed word of ``runner``'s randomness: from the names of its methods, not its place in the list."""
+    return zlib.crc32("+".join(runner.methods).encode())
 
 
 def pranet_runner(
@@ -287,7 +293,8 @@ def evaluate(
 
     Returns ``{"records": {method: [per-pair dict]}, "summary": {method: ...}, "fig5": ...}``. The
     pair ``i`` is ``make_pair(shapes[i], setting, pair_rng(seed, setting, i), ...)``; each method's
-    own randomness comes from ``default_rng([seed, setting, i, 1 + runner index])``.
+    own randomness comes from ``default_rng([seed, setting, i, runner_key(runner)])``, so a method's answers do not
+    depend on which others run beside it.
     """
     from tqdm import tqdm
 
@@ -299,8 +306,8 @@ def evaluate(
     for i in bar:
         pair = make_pair(shapes[i], setting, pair_rng(seed, setting, i), max_angle_deg, 0.5, rotation)
         digest = pair_digest(pair)
-        for k, runner in enumerate(runners):
-            rng = np.random.default_rng([seed, s_idx, i, 1 + k])
+        for runner in runners:
+            rng = np.random.default_rng([seed, s_idx, i, runner_key(runner)])
             try:
                 outputs = runner.fn(pair, rng)
             except Exception as e:  # a failed registration counts, as the identity, and is reported

@@ -103,6 +103,28 @@ def test_oracle_agent_through_the_pranet_runner(shapes):
     assert len(cd) == len(angle) == 61 and angle[-1] < angle[0] and cd[-1] < cd[0]
 
 
+def test_a_methods_randomness_does_not_depend_on_the_others_listed(shapes):
+    """A stochastic method's draws (here its answer's translation) are the same alone, first or second in the list,
+    and differ between methods and pairs."""
+
+    def noisy(name):
+        def fn(pair, rng):
+            T = pair.T_gt.copy()
+            T[:3, 3] += rng.normal(size=3)
+            return {name: ev.MethodOutput(T, 0.0)}
+
+        return ev.Runner((name,), fn)
+
+    def draws(runners):
+        out = ev.evaluate(shapes[:2], "clean", runners, progress=False)["records"]
+        return {m: [np.asarray(r["T_est"])[:3, 3] for r in recs] for m, recs in out.items()}
+
+    alone, first, second = draws([noisy("a")]), draws([noisy("a"), noisy("b")]), draws([noisy("b"), noisy("a")])
+    for got in (first["a"], second["a"]):
+        np.testing.assert_array_equal(np.array(got), np.array(alone["a"]))
+    assert not np.allclose(first["a"], first["b"]) and not np.allclose(alone["a"][0], alone["a"][1])
+
+
 def test_failing_method_counts_as_identity(shapes):
     def boom(pair, rng):
         raise ValueError("no luck")
