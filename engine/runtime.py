@@ -41,6 +41,7 @@ import numpy.typing as npt
 from pranet.core.actions import ActionTable, build_action_table
 from pranet.core.agent import BatchScoreFn, ScoreFn
 from pranet.core.knn import knn_indices
+from pranet.core.twins import twin_similarity
 
 GRAPHS = ("embed.onnx", "score.onnx")  # required
 HEAD_GRAPH = "head.onnx"  # optional: the MLP heads alone, for translation steps
@@ -173,6 +174,7 @@ class RewardModel:
 
     precision: str = "fp32"
     reuse_translations: bool = True  # re-score translated sources with the head alone (when _head exists)
+    use_twins: bool = True  # feed core.twins' term to a graph that takes it (False: zeros, the call without it)
 
     @classmethod
     def load(
@@ -187,11 +189,13 @@ class RewardModel:
         mem_pattern: bool = True,
         spinning: bool = False,
         reuse_translations: bool = True,
+        use_twins: bool = True,
     ) -> RewardModel:
         """Open the graphs of ``precision`` in CPU sessions built by ``session_options`` (same arguments).
 
         ``reuse_translations``: re-score a translated source with ``head.onnx`` (when the model has it
-        and embeds centred clouds); ``False`` runs ``score.onnx`` at every step.
+        and embeds centred clouds); ``False`` runs ``score.onnx`` at every step. ``use_twins=False``: a model whose
+        graphs take the twin term (``twins``) is fed zeros for it, which is the call without the term.
         """
         model_dir = Path(model_dir) if model_dir else default_model_dir()
         card = read_card(model_dir, verify=verify, precision=precision)
@@ -229,6 +233,7 @@ class RewardModel:
             _match=sessions.get(FINE_MATCH_GRAPH),
             precision=precision,
             reuse_translations=reuse_translations,
+            use_twins=use_twins,
         )
 
     def embed(self, points: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -247,8 +252,10 @@ class RewardModel:
         target_points: np.ndarray,
         target_features: np.ndarray,
         target_centroid: np.ndarray,
+        twin: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Batched rewards ``(B, A)``: ``points (B, N, 3) float32``, ``knn (B, N, k) int64``, target ``(B, M, ...)``."""
+        """Batched rewards ``(B, A)``: ``points (B, N, 3) float32``, ``knn (B, N, k) int64``, target ``(B, M, ...)``;
+        ``twin (1 | B, N, M)`` for a model with ``twins`` (``core.twins.twin_similarity``)."""
         feeds = {
             "points": points,
             "knn": knn,
@@ -256,6 +263,10 @@ class RewardModel:
             "target_features": target_features,
             "target_centroid": target_centroid,
         }
+        if twin is not None:
+            feeds["twin"] = twin
+        elif self.twins is not None:
+            raise ValueError("this model's score graph takes the twin term (core.twins): pass twin")
         return self._score.run(["rewards"], {name: feeds[name] for name in self._score_inputs})[0]
 
     def score_fn(self, target: npt.ArrayLike) -> ScoreFn:
@@ -279,6 +290,25 @@ class RewardModel:
         """A ``batch_score_fn(sources (B, N, 3), target) -> (B, A)`` for one registration onto ``target: (M, 3)``
         (``BatchScorer``). Counts in ``score.calls`` (rows); ``score.pose`` and ``score.fine`` as there."""
         return BatchScorer(self, target)
+
+    @property
+    def twins(self) -> dict[str, Any] | None:
+        """The card's ``twin_matching`` (``k``, ``sigma``, ``weight``) when the score graphs take the twin term."""
+        return self.card.get("twin_matching") if "twin" in self._score_inputs else None
+
+    def twin_term(
+        self, points: np.ndarray, knn: np.ndarray, target: np.ndarray, target_knn: np.ndarray
+    ) -> np.ndarray | None:
+        """The score graphs' ``twin`` input ``(1, N, M)`` for one source and target ``(N, 3)``, ``(M, 3)`` with their
+        kNN graphs (``core.twins``, the card's settings; zeros with ``use_twins=False``), or ``None`` for a model
+        whose graphs do not take it."""
+        twins = self.twins
+        if twins is None:
+            return None
+        if not self.use_twins:
+            return np.zeros((1, len(points), len(target)), dtype=np.float32)
+        settings = {key: twins[key] for key in ("k", "sigma", "weight")}
+        return twin_similarity(points, knn, target, target_knn, **settings)[None]
 
     @property
     def has_fine_call(self) -> bool:
@@ -411,7 +441,8 @@ class BatchScorer:
     def __init__(self, model: RewardModel, target: npt.ArrayLike) -> None:
         self.model = model
         self.t_pts = np.asarray(target, dtype=np.float32)[None]  # (1, M, 3)
-        self.t_feat, self.t_cen, _ = model.embed(self.t_pts)
+        self.t_feat, self.t_cen, self.t_knn = model.embed(self.t_pts)
+        self._twin: np.ndarray | None = None  # (1, N, M), with the source's kNN graph (``_tiles``)
         self._tiled: dict[int, tuple[np.ndarray, ...]] = {}  # B -> (knn, target points, features, centroid) tiled
         self._head = model._head if model.reuse_translations else None
         self._match = model._match if model.reuse_translations else None
@@ -466,12 +497,16 @@ class BatchScorer:
             tiled = self._tiled
             knn = tiled[next(iter(tiled))][0][:1] if tiled else knn_indices(pts[:1], self.model.k)  # (1, N, k)
             tiled[b] = tuple(np.repeat(a, b, axis=0) for a in (knn, self.t_pts, self.t_feat, self.t_cen))
+            if self._twin is None:  # pose-blind: one term serves every row and every step of the registration
+                self._twin = self.model.twin_term(pts[0], knn[0], self.t_pts[0], self.t_knn[0])
         return self._tiled[b]
 
     def _run(self, pts: np.ndarray, names: list[str], fine: bool = False) -> list[np.ndarray]:
         """``score.onnx`` (or ``score_fine.onnx``) on the rows ``pts``, counted."""
         knn, tp, tf, tc = self._tiles(len(pts), pts)
         feeds = {"points": pts, "knn": knn, "target_points": tp, "target_features": tf, "target_centroid": tc}
+        if self._twin is not None:
+            feeds["twin"] = self._twin
         self.calls["fine" if fine else "full"] += len(pts)
         session = self.model._fine if fine else self.model._score
         return session.run(names, {name: feeds[name] for name in self.model._score_inputs})

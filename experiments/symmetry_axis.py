@@ -64,7 +64,8 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- |")
     for name, n in Counter(r[0] for r in rows).most_common():
         sel = np.array([r[1:] for r in rows if r[0] == name])
-        print(f"| {name} | {n} | {np.median(sel[:, 0]):.1f}° | {np.median(sel[:, 1]):.1f}° | {np.median(sel[:, 2]):.2f} |")
+        turn, off, roundness = np.median(sel, axis=0)
+        print(f"| {name} | {n} | {turn:.1f}° | {off:.1f}° | {roundness:.2f} |")
     off = np.array([r[2] for r in rows])
     print(
         f"axis within 10° of the symmetry axis: {int((off <= 10).sum())} of {len(rows)}; "

@@ -37,6 +37,7 @@ from typing import Any
 import torch
 
 from pranet.core.actions import build_action_table
+from pranet.core.twins import TWIN_K, TWIN_SIGMA, TWIN_WEIGHT
 from pranet.engine.runtime import FINE_GRAPH, FINE_MATCH_GRAPH, graph_files, head_file, sha256_file
 from pranet.model.config import FINE_ROUNDS, MatchingRound, NetConfig, format_rounds, parse_rounds
 from pranet.model.network import EmbedGraph, FineScoreGraph, HeadGraph, MatchGraph, RewardNet, ScoreGraph
@@ -71,10 +72,17 @@ def _set_metadata(path: Path, meta: dict[str, str]) -> None:
 
 
 def export_model(
-    net: RewardNet, out: Path, card: dict[str, Any], fine_rounds: tuple[MatchingRound, ...] = FINE_ROUNDS
+    net: RewardNet,
+    out: Path,
+    card: dict[str, Any],
+    fine_rounds: tuple[MatchingRound, ...] = FINE_ROUNDS,
+    twins: bool = False,
 ) -> dict[str, Any]:
     """Write ``embed.onnx``, ``score.onnx``, ``head.onnx``, the fine phase's graphs (``export_fine_graphs``) and
-    ``card.json`` into ``out``; returns the card. ``fine_rounds``: the fine graphs' matching rounds."""
+    ``card.json`` into ``out``; returns the card. ``fine_rounds``: the fine graphs' matching rounds. ``twins``
+    (Sinkhorn networks): the score graphs take ``core.twins``' term as a sixth input, ``twin``, and the card's
+    ``twin_matching`` gives the runtime its settings."""
+    twins = twins and net.cfg.correspondence and net.cfg.matching == "sinkhorn"
     out.mkdir(parents=True, exist_ok=True)
     # Made from the previous graphs, if any.
     for stale in [*out.glob("*.int8.onnx"), out / FINE_GRAPH, out / FINE_MATCH_GRAPH]:
@@ -108,17 +116,24 @@ def export_model(
         opset_version=OPSET,
         dynamo=False,
     )
+    example: tuple[torch.Tensor, ...] = (pts, knn, pts, feats, cen)
+    inputs = ["points", "knn", "target_points", "target_features", "target_centroid"]
+    if twins:
+        # One (N, M) term per registration, broadcast over the rows (the starts) of a batched call.
+        example, inputs = (*example, torch.zeros(1, N, N)), [*inputs, "twin"]
+        score_axes["twin"] = {0: "twin_rows", 1: "n", 2: "m"}
+        card = {**card, "twin_matching": {"input": "twin", "k": TWIN_K, "sigma": TWIN_SIGMA, "weight": TWIN_WEIGHT}}
     torch.onnx.export(
         ScoreGraph(net).eval(),
-        (pts, knn, pts, feats, cen),
+        example,
         str(out / "score.onnx"),
-        input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
+        input_names=inputs,
         output_names=["rewards", "pair_features"],
         dynamic_axes=score_axes,
         opset_version=OPSET,
         dynamo=False,
     )
-    fine_graphs = export_fine_graphs(net, out, (pts, knn, pts, feats, cen), score_axes, fine_rounds)
+    fine_graphs = export_fine_graphs(net, out, example, score_axes, fine_rounds)
     torch.onnx.export(
         HeadGraph(net).eval(),
         (pair, cen - cen),
@@ -164,7 +179,7 @@ def export_fine_graphs(
         (FineScoreGraph(net, fine_rounds) if match_only else ScoreGraph(net, fine_rounds)).eval(),
         example,
         str(out / FINE_GRAPH),
-        input_names=["points", "knn", "target_points", "target_features", "target_centroid"],
+        input_names=["points", "knn", "target_points", "target_features", "target_centroid", "twin"][: len(example)],
         output_names=["rewards", "pair_features", *cached],
         dynamic_axes={**score_axes, **cached},
         opset_version=OPSET,
@@ -172,7 +187,7 @@ def export_fine_graphs(
     )
     if not match_only:
         return (FINE_GRAPH,)
-    pts, _, target, feats, cen = example
+    pts, _, target, feats, cen = example[:5]
     with torch.no_grad():
         _, similarity, params = net.fine_call(feats, cen, feats, cen, pts, target, fine_rounds)
     torch.onnx.export(
@@ -261,6 +276,13 @@ def main(argv: list[str] | None = None) -> int:
         help=f"the fine-phase graph's matching rounds: trained round indices, gN for γ × N (default "
         f"{format_rounds(FINE_ROUNDS)})",
     )
+    p.add_argument(
+        "--twins",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the score graphs take core.twins' term (a point's twin in the other cloud, where the clouds share "
+        "their points); --no-twins: the graphs as before it",
+    )
     args = p.parse_args(argv)
     if args.checkpoint is None and not args.int8:
         p.error("a checkpoint is required (or --int8 to quantize the existing model directory --out)")
@@ -269,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
         card = card_from_checkpoint(ck, args.name, args.version)
         # Provenance: which checkpoint (path as given, relative to the repository root when run from it).
         card["checkpoint"] = {"path": args.checkpoint.as_posix(), "sha256": sha256_file(args.checkpoint)}
-        card = export_model(net, args.out, card, args.fine_rounds)
+        card = export_model(net, args.out, card, args.fine_rounds, twins=args.twins)
     if args.int8:
         from pranet.model.quantize import quantize_model_dir
 

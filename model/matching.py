@@ -246,12 +246,14 @@ class SinkhornCorrespondence(nn.Module):
         pooled: Tensor | None,
         rounds: Sequence[MatchingRound] | None = None,
         prepared: Prepared | None = None,
+        twin: Tensor | None = None,
     ) -> Tensor:
         """``rounds`` (default ``self.rounds()``): ``(parameter index, γ scale)`` per round, in order; a scale above 1
         narrows that round's distance kernel (the fine phase's schedule, ``model.config.FINE_ROUNDS``).
         ``prepared``: ``prepare``'s tensors of an earlier call on the same clouds (then ``fx``, ``fy`` and ``pooled``
-        are not read): only the rounds run, on the clouds as placed now. Each call keeps its ``prepare``d tensors
-        in ``self.prepared``. Both go through the module's call, so the exported nodes keep the ``/correspondence``
+        are not read): only the rounds run, on the clouds as placed now. ``twin``: ``core.twins``' term
+        ``(B | 1, N, M)``, added to the feature similarity (``prepare``). Each call keeps its ``prepare``d tensors in
+        ``self.prepared``. Both go through the module's call, so the exported nodes keep the ``/correspondence``
         names that ``model.quantize`` keeps in fp32."""
         # One batch size, read from x first, for both parts: the trace, and so score.onnx, stays node for node as it
         # was before the two parts were split.
@@ -259,19 +261,24 @@ class SinkhornCorrespondence(nn.Module):
         if prepared is None:
             if fx is None or fy is None or pooled is None:
                 raise ValueError("the features and pooled vectors are needed without prepared tensors")
-            prepared = self.prepare(fx, fy, pooled, B)
+            prepared = self.prepare(fx, fy, pooled, B, twin)
         self.prepared = prepared
         return self.match(*prepared, x, y, rounds, B)
 
-    def prepare(self, fx: Tensor, fy: Tensor, pooled: Tensor, batch: int | None = None) -> Prepared:
+    def prepare(
+        self, fx: Tensor, fy: Tensor, pooled: Tensor, batch: int | None = None, twin: Tensor | None = None
+    ) -> Prepared:
         """What the matching takes from the features: ``(similarity (B, N, M), params (B, passes, 3), prior)``, the
-        cosines of the projected features, every round's ``(β, γ, α)`` and the overlap head's log-prior (``None``
-        without the head). None of it depends on where the clouds are, only on their shapes and orientations."""
+        cosines of the projected features (plus ``twin``, when given: ``core.twins``), every round's ``(β, γ, α)``
+        and the overlap head's log-prior (``None`` without the head). None of it depends on where the clouds are, only
+        on their shapes and orientations."""
         B = fx.shape[0] if batch is None else batch
         params = nn.functional.softplus(self.params(pooled)).view(B, self.passes, 3) * self.param_scales
         qx = nn.functional.normalize(self.q(fx), dim=-1)  # (B, N, D)
         ky = nn.functional.normalize(self.k(fy), dim=-1)  # (B, M, D)
         similarity = qx @ ky.transpose(1, 2)  # (B, N, M)
+        if twin is not None:
+            similarity = similarity + twin
         prior: Tensor | None = None  # (B, N, M) log-probabilities that both points of a match overlap
         if self.overlap is not None:
             ox, oy = self.overlap(fx).squeeze(-1), self.overlap(fy).squeeze(-1)  # (B, N), (B, M)

@@ -174,6 +174,7 @@ class RewardNet(nn.Module):
         src_points: Tensor | None = None,
         tgt_points: Tensor | None = None,
         fine_rounds: Sequence[MatchingRound] | None = None,
+        twin: Tensor | None = None,
     ) -> Tensor:
         """Embeddings of both clouds -> ``(B, P)``: the MLP input except the centroid offset.
 
@@ -182,7 +183,8 @@ class RewardNet(nn.Module):
         ``src_points``/``tgt_points`` (``(B, N, 3)``, ``(B, M, 3)``) are needed with ``correspondence``.
         ``fine_rounds`` (Sinkhorn matching): the fine phase's call. The matching runs these rounds on both clouds
         about the target's centroid, where the agent has put them, rather than each about its own; the pose is
-        returned in the same centred convention, and it now depends on where the source is.
+        returned in the same centred convention, and it now depends on where the source is. ``twin`` (Sinkhorn
+        matching): ``core.twins``' term, added to the feature similarity.
         """
         src, tgt, parts = self.attend(src, tgt)
         if self.correspondence is not None:
@@ -194,9 +196,10 @@ class RewardNet(nn.Module):
                 # Concatenated after x and y, as before the fine call's refactor: score.onnx stays node for node.
                 pooled = torch.cat(parts, dim=-1)
                 if fine_rounds is None:
-                    pose = self.correspondence(src, tgt, x, y, pooled)
+                    pose = self.correspondence(src, tgt, x, y, pooled, twin=twin)
                 else:
-                    pose = self.placed_pose(src, tgt, x, y, pooled, src_centroid - tgt_centroid, fine_rounds)
+                    offset = src_centroid - tgt_centroid
+                    pose = self.placed_pose(src, tgt, x, y, pooled, offset, fine_rounds, twin=twin)
                 if self.analytic is not None:
                     return pose  # the analytic head needs nothing else
                 parts.append(pose)
@@ -214,6 +217,7 @@ class RewardNet(nn.Module):
         offset: Tensor,
         rounds: Sequence[MatchingRound],
         prepared: Prepared | None = None,
+        twin: Tensor | None = None,
     ) -> Tensor:
         """The matching's ``(B, 12)`` pose ``y ≈ R x + r`` (centred clouds ``x``, ``y``; ``offset`` = source − target
         centroid), found by matching ``x + offset`` against ``y``: both about the target's centroid. ``prepared``:
@@ -221,7 +225,7 @@ class RewardNet(nn.Module):
         translation leaves as they are; then ``src``, ``tgt`` and ``pooled`` are not read."""
         if not isinstance(self.correspondence, SinkhornCorrespondence):
             raise ValueError("a fine-phase call needs matching='sinkhorn'")
-        pose = self.correspondence(src, tgt, x + offset.unsqueeze(1), y, pooled, rounds, prepared)
+        pose = self.correspondence(src, tgt, x + offset.unsqueeze(1), y, pooled, rounds, prepared, twin)
         R, r_placed = pose[:, :9].reshape(-1, 3, 3), pose[:, 9:12]
         # y ≈ R (x + offset) + r_placed = R x + (r_placed + R offset).
         return torch.cat([pose[:, :9], r_placed + (R @ offset.unsqueeze(-1)).squeeze(-1)], dim=-1)
@@ -235,11 +239,12 @@ class RewardNet(nn.Module):
         src_points: Tensor,
         tgt_points: Tensor,
         rounds: Sequence[MatchingRound],
+        twin: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """The fine phase's call on embeddings (analytic Sinkhorn networks without an overlap head) -> ``(pose
         (B, 12), similarity (B, N, M), params (B, passes, 3))``: ``pair_features(..., fine_rounds=rounds)``, and what
         ``MatchGraph`` needs to score the same source translated."""
-        pose = self.pair_features(src, src_centroid, tgt, tgt_centroid, src_points, tgt_points, rounds)
+        pose = self.pair_features(src, src_centroid, tgt, tgt_centroid, src_points, tgt_points, rounds, twin)
         if not isinstance(self.correspondence, SinkhornCorrespondence) or self.correspondence.prepared is None:
             raise ValueError("a fine-phase call needs matching='sinkhorn'")
         similarity, params, prior = self.correspondence.prepared
@@ -316,7 +321,8 @@ class ScoreGraph(nn.Module):
     ``target_points`` is only an input of networks with ``correspondence``. ``pair_features`` is what
     ``HeadGraph`` needs to re-score the same source after a translation (``center_inputs`` networks).
     ``fine_rounds``: the fine phase's graph (``score_fine.onnx``; ``RewardNet.pair_features``), whose pair features
-    change with a translation.
+    change with a translation. A model exported with twins (the card's ``twin_matching``) has a sixth input,
+    ``twin (1 | B, N, M)``: ``core.twins``' term, added to the matching's feature similarity.
     """
 
     def __init__(self, net: RewardNet, fine_rounds: Sequence[MatchingRound] | None = None) -> None:
@@ -325,11 +331,17 @@ class ScoreGraph(nn.Module):
         self.fine_rounds = None if fine_rounds is None else tuple(fine_rounds)
 
     def forward(
-        self, points: Tensor, knn: Tensor, target_points: Tensor, target_features: Tensor, target_centroid: Tensor
+        self,
+        points: Tensor,
+        knn: Tensor,
+        target_points: Tensor,
+        target_features: Tensor,
+        target_centroid: Tensor,
+        twin: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         src, centroid = self.net.embed(points, knn)
         pair = self.net.pair_features(
-            src, centroid, target_features, target_centroid, points, target_points, self.fine_rounds
+            src, centroid, target_features, target_centroid, points, target_points, self.fine_rounds, twin
         )
         return self.net.head(pair, centroid - target_centroid), pair
 
@@ -337,7 +349,7 @@ class ScoreGraph(nn.Module):
 class FineScoreGraph(nn.Module):
     """The fine phase's graph (``score_fine.onnx``): ``ScoreGraph(net, rounds)``'s inputs -> ``(rewards,
     pair_features, similarity, match_params)``, the last two what ``MatchGraph`` needs to score the same source
-    after a translation (``RewardNet.fine_call``)."""
+    after a translation (``RewardNet.fine_call``); the returned similarity includes the ``twin`` input's term."""
 
     def __init__(self, net: RewardNet, rounds: Sequence[MatchingRound]) -> None:
         super().__init__()
@@ -345,11 +357,17 @@ class FineScoreGraph(nn.Module):
         self.rounds = tuple(rounds)
 
     def forward(
-        self, points: Tensor, knn: Tensor, target_points: Tensor, target_features: Tensor, target_centroid: Tensor
+        self,
+        points: Tensor,
+        knn: Tensor,
+        target_points: Tensor,
+        target_features: Tensor,
+        target_centroid: Tensor,
+        twin: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         src, centroid = self.net.embed(points, knn)
         pair, similarity, params = self.net.fine_call(
-            src, centroid, target_features, target_centroid, points, target_points, self.rounds
+            src, centroid, target_features, target_centroid, points, target_points, self.rounds, twin
         )
         return self.net.head(pair, centroid - target_centroid), pair, similarity, params
 

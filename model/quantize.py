@@ -62,8 +62,11 @@ def quantize_graph(src: Path, dst: Path, per_channel: bool = True, reduce_range:
 
     with tempfile.TemporaryDirectory() as tmp:
         prepared = Path(tmp) / "prepared.onnx"
+        # onnxruntime's symbolic shape pass cannot follow the twin input's broadcast over the rows (core.twins), and
+        # when it fails it leaves its temporary files in the working directory: such graphs take ONNX's own pass.
+        symbolic = "twin" not in {i.name for i in onnx.load(str(src), load_external_data=False).graph.input}
         try:  # shape inference + graph cleanup, as onnxruntime recommends before quantizing
-            quant_pre_process(str(src), str(prepared), skip_symbolic_shape=False)
+            quant_pre_process(str(src), str(prepared), skip_symbolic_shape=not symbolic)
         except Exception:  # pre-processing is an optimisation; quantize the graph as it is if it fails
             prepared = src
         graph = onnx.load(str(prepared), load_external_data=False).graph

@@ -152,13 +152,19 @@ def test_shipped_model_is_its_committed_checkpoint():
     rng = np.random.default_rng(3)
     src = rng.standard_normal((model.n_points, 3)).astype(np.float32) * 0.4
     tgt = src @ np.array([[0.8, -0.6, 0.0], [0.6, 0.8, 0.0], [0.0, 0.0, 1.0]], np.float32).T + 0.05
+    # The target is the source's own points moved, so the twin term (the card's twin_matching) is in play.
+    from pranet.core.twins import twin_similarity
+    from pranet.model.network import ScoreGraph
+
+    src_knn, tgt_knn = knn_indices(src[None], model.k), knn_indices(tgt[None], model.k)
+    twin = None
+    if model.twins is not None:
+        settings = {key: model.twins[key] for key in ("k", "sigma", "weight")}
+        twin = torch.from_numpy(twin_similarity(src, src_knn[0], tgt, tgt_knn[0], **settings)[None])
     with torch.no_grad():
-        ref = net(
-            torch.from_numpy(src[None]),
-            torch.from_numpy(knn_indices(src[None], model.k)),
-            torch.from_numpy(tgt[None]),
-            torch.from_numpy(knn_indices(tgt[None], model.k)),
-        )[0].numpy()
+        tf, tc = net.embed(torch.from_numpy(tgt[None]), torch.from_numpy(tgt_knn))
+        s, k, t = (torch.from_numpy(a) for a in (src[None], src_knn, tgt[None]))
+        ref = ScoreGraph(net)(s, k, t, tf, tc, twin)[0][0].numpy()
     np.testing.assert_allclose(model.score_fn(tgt)(src, tgt), ref, rtol=1e-4, atol=1e-5)
 
 

@@ -193,6 +193,9 @@ def flops_table(model_dir: Path, scorer: Any, source: Array, target: Array, reco
         "target_features": feats,
         "target_centroid": cen,
     }
+    twin = scorer.twin_term(pts[0], score_feeds["knn"][0], tpts[0], tknn[0])
+    if twin is not None:
+        score_feeds["twin"] = twin
     fl_score = graph_flops(model_dir / score_file, score_feeds)
     fl_embed = graph_flops(model_dir / embed_file, {"points": tpts, "knn": tknn})
     f = scorer.score_fn(target)
