@@ -1,7 +1,8 @@
 """``pranet-eval``: PRANet-v1/v2 and the classical baselines on the unseen-category ModelNet40 test set.
 
 The protocol of the paper's Tables 1-3 (RPMNet's metrics): the 1266 test shapes of categories 20-39
-(``--limit N`` takes the first N), one registration problem per shape built by
+(``--limit N`` takes the first N, after ``--skip M``: a run in parts, each part on its own pairs of the whole run),
+one registration problem per shape built by
 ``make_pair(shape, setting, pair_rng(seed, setting, i), max_angle, 0.5, rotation)`` so that every
 method sees the same pairs. PRANet runs the agent once per pair: pranet-v1 is its result, pranet-v2
 the same result refined by ICP (timed as agent + ICP). Per pair: isotropic rotation error (degrees),
@@ -12,6 +13,7 @@ everything; ``--plot`` draws the paper's Fig. 5 (Chamfer distance and angle over
 Examples::
 
     pranet-eval --setting noisy --limit 100 --json runs/eval/noisy.json
+    pranet-eval --setting clean --skip 633 --json runs/eval/clean-2.json   # the second half, beside the first
     pranet-eval --setting clean --methods pranet-v1 --policy stoch1 --json runs/eval/stoch1.json
     pranet-eval --setting clean --rotation naive --max-angle 32 --methods pranet-v1 --json naive.json
     pranet-eval --setting clean --methods pranet-v1 --plot fig5.png --json fig5.json
@@ -288,11 +290,13 @@ def evaluate(
     n_curve_steps: int = 60,
     shape_ids: Sequence[int] | None = None,
     progress: bool = True,
+    first_pair: int = 0,
 ) -> dict[str, Any]:
     """Run every runner on pair ``i`` of ``shapes`` (``(S, P, 3)``) for ``i < S``.
 
     Returns ``{"records": {method: [per-pair dict]}, "summary": {method: ...}, "fig5": ...}``. The
-    pair ``i`` is ``make_pair(shapes[i], setting, pair_rng(seed, setting, i), ...)``; each method's
+    pair ``i`` is ``make_pair(shapes[i], setting, pair_rng(seed, setting, first_pair + i), ...)`` (``first_pair``:
+    where ``shapes`` starts in the test list, so that a run in parts draws the whole run's pairs); each method's
     own randomness comes from ``default_rng([seed, setting, i, runner_key(runner)])``, so a method's answers do not
     depend on which others run beside it.
     """
@@ -303,8 +307,9 @@ def evaluate(
     cd_curves: list[list[float]] = []
     angle_curves: list[list[float]] = []
     bar = tqdm(range(len(shapes)), desc=f"pranet-eval {setting}", file=sys.stderr, disable=not progress)
-    for i in bar:
-        pair = make_pair(shapes[i], setting, pair_rng(seed, setting, i), max_angle_deg, 0.5, rotation)
+    for k in bar:
+        i = first_pair + k
+        pair = make_pair(shapes[k], setting, pair_rng(seed, setting, i), max_angle_deg, 0.5, rotation)
         digest = pair_digest(pair)
         for runner in runners:
             rng = np.random.default_rng([seed, s_idx, i, runner_key(runner)])
@@ -317,7 +322,7 @@ def evaluate(
                 metrics = evaluate_pair(pair.source, pair.target, pair.clean_source, out.transform, pair.T_gt)
                 rec: dict[str, Any] = {
                     "pair": i,
-                    "shape": int(shape_ids[i]) if shape_ids is not None else i,
+                    "shape": int(shape_ids[k]) if shape_ids is not None else i,
                     "pair_sha1": digest,
                     **metrics.as_dict(),
                     "ms": out.ms,
@@ -379,6 +384,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--setting", choices=SETTINGS, default="clean")
     p.add_argument("--limit", type=int, default=None, help="first N of the 1266 test shapes (default: all)")
+    p.add_argument(
+        "--skip", type=int, default=0, help="start at this test shape, with its own pair (a run in parts; default 0)"
+    )
     p.add_argument("--model", default=None, help="model directory (default: the model shipped in the package)")
     p.add_argument("--json", type=Path, default=None, help="write config, summaries and per-pair records here")
     p.add_argument(
@@ -427,6 +435,7 @@ def load_test_shapes(args: argparse.Namespace) -> tuple[Any, np.ndarray, np.ndar
     root = data_dir(args.data_dir)
     data = load_modelnet40(root, "test")
     idx = test_indices(data.labels)
+    idx = idx[args.skip :]
     if args.limit is not None:
         idx = idx[: args.limit]
     return data, idx, data.points[idx], root
@@ -531,6 +540,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         n_curve_steps=m.n_steps,
         shape_ids=idx,
         progress=not args.quiet,
+        first_pair=args.skip,
     )
     wall_s = time.perf_counter() - t0
     # 3. The table, the figure, the JSON.

@@ -125,6 +125,23 @@ def test_a_methods_randomness_does_not_depend_on_the_others_listed(shapes):
     assert not np.allclose(first["a"], first["b"]) and not np.allclose(alone["a"][0], alone["a"][1])
 
 
+def test_a_run_in_parts_draws_the_whole_runs_pairs(shapes):
+    """``first_pair`` (``pranet-eval --skip``): pairs 2 and 3 evaluated on their own are pairs 2 and 3 of the whole run,
+    with the same problems (hashes), indices and answers."""
+    noisy = ev.Runner(
+        ("a",),
+        lambda pair, rng: {"a": ev.MethodOutput(pair.T_gt + np.pad(rng.normal(size=(3, 1)), ((0, 1), (3, 0))), 0.0)},
+    )
+    whole = ev.evaluate(shapes[:4], "noisy", [noisy], progress=False)["records"]["a"]
+    part = ev.evaluate(shapes[2:4], "noisy", [noisy], progress=False, first_pair=2)["records"]["a"]
+    for got, want in zip(part, whole[2:], strict=True):
+        assert (got["pair"], got["pair_sha1"], got["T_est"]) == (want["pair"], want["pair_sha1"], want["T_est"])
+    assert (
+        part[0]["pair_sha1"]
+        != ev.evaluate(shapes[2:3], "noisy", [noisy], progress=False)["records"]["a"][0]["pair_sha1"]
+    )
+
+
 def test_failing_method_counts_as_identity(shapes):
     def boom(pair, rng):
         raise ValueError("no luck")
