@@ -1,10 +1,10 @@
 """Would a pose-blind local descriptor let the paper's agent tell a symmetric shape's turned copies apart?
 
 On the clean setting every source point has an exact twin in the target (the same points, moved), with the same
-distances to its neighbours; a turned copy of a vase has none. The probe adds ``λ · S`` to the matching's feature
-similarity (``SinkhornCorrespondence.prepare``), with ``S_ij = exp(-|d_i - d_j|² / (2 (σ s)²))``, ``d`` the sorted
-distances of a point to its ``k`` nearest neighbours in its own cloud and ``s`` the cloud's median neighbour
-distance: 1 for a twin, about 0 for anything else, and about 0 everywhere on independent samples (noisy, partial),
+distances to its neighbours; a turned copy of a vase has none. The probe adds ``λ · S`` (``core.twins``, through
+``RewardNet.pair_features(twin=)``) to the matching's feature similarity, with ``S_ij = exp(-|d_i - d_j|² / (2 (σ
+s)²))``, ``d`` the sorted distances of a point to its ``k`` nearest neighbours in its own cloud and ``s`` the median
+neighbour distance: 1 for a twin, about 0 for anything else, and about 0 everywhere on independent samples (noisy, partial),
 so that it cannot pull those off. No weights change. Torch, the paper's protocol (20 coarse steps on the trained
 call, 40 fine steps on ``FINE_ROUNDS``, every point), on the test pairs ``pranet-eval`` generates: those a base
 ``--json`` file says ended more than 10° off, then the first others up to ``--pairs``.
@@ -23,41 +23,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from pranet.core.actions import build_action_table
 from pranet.core.agent import run_agent
 from pranet.core.knn import knn_indices
 from pranet.core.metrics import isotropic_errors
+from pranet.core.twins import twin_similarity
 from pranet.model.config import FINE_ROUNDS
 from pranet.model.export import load_checkpoint
-from pranet.model.matching import SinkhornCorrespondence
 from pranet.training.data import data_dir, load_modelnet40, test_indices
 from pranet.training.samples import make_pair, pair_rng
-
-
-def descriptor(points: np.ndarray, k: int) -> tuple[np.ndarray, float]:
-    """Sorted distances of every point to its ``k`` nearest others ``(N, k)``, and the median nearest distance."""
-    d, _ = cKDTree(points).query(points, k + 1)
-    return d[:, 1:], float(np.median(d[:, 1]))
-
-
-def twin_similarity(src: np.ndarray, tgt: np.ndarray, k: int, sigma: float) -> torch.Tensor:
-    ds, s = descriptor(src, k)
-    dt, _ = descriptor(tgt, k)
-    d2 = ((ds[:, None, :] - dt[None, :, :]) ** 2).sum(-1)  # (N, M)
-    return torch.from_numpy(np.exp(-d2 / (2.0 * (sigma * s) ** 2))).float()[None]
-
-
-def with_twins(prepare, module: SinkhornCorrespondence):
-    """``prepare`` with ``module.twin_term`` (``(1, N, M)`` or None) added to the similarity."""
-
-    def patched(fx, fy, pooled, batch=None):
-        similarity, params, prior = prepare(fx, fy, pooled, batch)
-        term = getattr(module, "twin_term", None)
-        return (similarity if term is None else similarity + term), params, prior
-
-    return patched
 
 
 def score_fn(net, target: np.ndarray, k: int, rounds, term: torch.Tensor | None):
@@ -70,10 +45,9 @@ def score_fn(net, target: np.ndarray, k: int, rounds, term: torch.Tensor | None)
         src_pts = torch.from_numpy(np.asarray(source, dtype=np.float32))[None]
         if not src_knn:
             src_knn.append(torch.from_numpy(knn_indices(source, k))[None])
-        net.correspondence.twin_term = term
         with torch.no_grad():
             src_feat, c_s = net.embed(src_pts, src_knn[0])
-            pair = net.pair_features(src_feat, c_s, tgt_feat, c_t, src_pts, tgt_pts, rounds)
+            pair = net.pair_features(src_feat, c_s, tgt_feat, c_t, src_pts, tgt_pts, rounds, term)
             return net.head(pair, c_s - c_t)[0].numpy()
 
     return score
@@ -94,8 +68,6 @@ def main() -> None:
     torch.set_num_threads(1)
     net, ck = load_checkpoint(args.checkpoint)
     net.eval()
-    corr = net.correspondence
-    corr.prepare = with_twins(corr.prepare, corr)
     table = build_action_table([tuple(s) for s in ck["config"]["scales"]])
     fine_rounds = FINE_ROUNDS
     with gzip.open(args.base, "rt") as f:
@@ -111,7 +83,11 @@ def main() -> None:
         t0, errors = time.perf_counter(), []
         for i in chosen:
             pair = make_pair(data.points[idx[i]], args.setting, pair_rng(1234, args.setting, i), 60.0, 0.5)
-            term = lam * twin_similarity(pair.source, pair.target, args.k, args.sigma) if lam else None
+            term = None
+            if lam:  # core.twins on the clouds' own kNN graphs, the runtime's term
+                src_knn, tgt_knn = knn_indices(pair.source, net.cfg.k), knn_indices(pair.target, net.cfg.k)
+                S = twin_similarity(pair.source, src_knn, pair.target, tgt_knn, args.k, args.sigma, lam)
+                term = torch.from_numpy(S)[None]
             trained = score_fn(net, pair.target, net.cfg.k, None, term)
             coarse = run_agent(pair.source, pair.target, trained, table, (20, 0))
             fine = score_fn(net, pair.target, net.cfg.k, fine_rounds, term)
