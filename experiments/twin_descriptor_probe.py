@@ -4,7 +4,8 @@ On the clean setting every source point has an exact twin in the target (the sam
 distances to its neighbours; a turned copy of a vase has none. The probe adds ``λ · S`` (``core.twins``, through
 ``RewardNet.pair_features(twin=)``) to the matching's feature similarity, with ``S_ij = exp(-|d_i - d_j|² / (2 (σ
 s)²))``, ``d`` the sorted distances of a point to its ``k`` nearest neighbours in its own cloud and ``s`` the median
-neighbour distance: 1 for a twin, about 0 for anything else, and about 0 everywhere on independent samples (noisy, partial),
+neighbour distance: 1 for a twin, about 0 for anything else, and about 0 everywhere on independent samples (noisy,
+partial),
 so that it cannot pull those off. No weights change. Torch, the paper's protocol (20 coarse steps on the trained
 call, 40 fine steps on ``FINE_ROUNDS``, every point), on the test pairs ``pranet-eval`` generates: those a base
 ``--json`` file says ended more than 10° off, then the first others up to ``--pairs``.
